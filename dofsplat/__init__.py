@@ -1,0 +1,19 @@
+"""dofsplat: depth of field for point clouds by EWA surface splatting.
+
+An implementation of Krivanek & Zara, "Rendering Depth-of-Field with Surface Splatting"
+(2003). Importing the package is cheap: numba kernels compile on first render.
+"""
+
+from .camera import Camera, EyeLens, ThinLens, photographic
+from .errors import DofsplatError
+from .render import RenderResult, RenderSettings, focus_distance_at, render
+from .shading import HEADLIGHT, Light
+from .surfels import Material, Surfels
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",
+    "RenderSettings", "focus_distance_at", "render", "HEADLIGHT", "Light", "Material",
+    "Surfels", "__version__",
+]

@@ -1,0 +1,259 @@
+"""The rendering pipeline, stage by stage (paper Sections 4-6).
+
+    shade -> project (EWA kernel + DOF blur) -> bin to tiles -> rasterise into the A-buffer
+    and resolve (surface reconstruction, compositing over the background)
+
+``render`` is the one public entry point; each stage is a named function below.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import Camera, EyeLens, ThinLens
+from .errors import DofsplatError
+from .shading import HEADLIGHT, Light, shade
+from .surfels import Surfels
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to render; the defaults reproduce the paper's setup (c = 2.5, Phong, headlight)."""
+
+    cutoff: float = 2.5  # c: kernels are truncated where 1/2 x^T W^-1 x reaches c
+    dof: bool = True  # False renders a pinhole image whatever the lens
+    shading: str = "phong"  # "phong" or "none" (surfel colour unlit)
+    lights: tuple[Light, ...] = (HEADLIGHT,)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # linear RGB under everything
+    cull_backfaces: bool = True  # drop surfels whose normal faces away from the eye
+    z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
+    exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
+    max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
+
+    def __post_init__(self):
+        if not (math.isfinite(self.cutoff) and self.cutoff > 0):
+            raise DofsplatError(f"cutoff must be > 0, got {self.cutoff}")
+        if self.cutoff > 30:
+            raise DofsplatError(f"cutoff {self.cutoff} is unreasonably large (the kernel is below e^-30 there)")
+        if self.shading not in ("phong", "none"):
+            raise DofsplatError(f"shading must be 'phong' or 'none', got {self.shading!r}")
+        bg = np.asarray(self.background, float)
+        if bg.shape != (3,) or not np.all(np.isfinite(bg)) or np.any(bg < 0):
+            raise DofsplatError(f"background must be three numbers >= 0, got {self.background}")
+        if not (math.isfinite(self.z_thickness) and self.z_thickness >= 0):
+            raise DofsplatError(f"z_thickness must be >= 0, got {self.z_thickness}")
+        if self.max_tile_pairs < 1:
+            raise DofsplatError("max_tile_pairs must be positive")
+
+
+@dataclass
+class RenderResult:
+    """A rendered frame.
+
+    image:  (H, W, 4) float32: linear RGB composited over the background, then alpha
+            (the total coverage, 1 - the background's remaining transmittance)
+    depth:  (H, W) float32: camera depth of the surface that contributes most to the
+            pixel, inf where nothing was drawn
+    weight: (H, W) float32: accumulated splat weight of the nearest surface (about 1 on a
+            well-normalised surface; Section 6.3)
+    stats:  points in, splats rendered, fragments, milliseconds per stage
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    weight: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def rgb(self) -> np.ndarray:
+        return self.image[..., :3]
+
+    @property
+    def alpha(self) -> np.ndarray:
+        return self.image[..., 3]
+
+
+def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = None,
+           settings: RenderSettings | None = None) -> RenderResult:
+    """Render surfels with depth of field (paper Sections 4-6).
+
+    surfels:  the model (``Surfels``)
+    camera:   view, projection and image size (``Camera``)
+    lens:     ``ThinLens`` or ``EyeLens``; None, or an aperture of 0, is a pinhole
+    settings: ``RenderSettings`` (cutoff, shading, background, ...)
+    """
+    settings = settings or RenderSettings()
+    if not isinstance(surfels, Surfels):
+        raise DofsplatError("render() needs a Surfels model")
+    warm_up()
+    times = {}
+    t_start = time.perf_counter()
+
+    t = time.perf_counter()
+    rgb = shade_surfels(surfels, camera, settings)
+    times["shade_ms"] = _ms(t)
+
+    t = time.perf_counter()
+    splats, bbox, visible = project(surfels, rgb, camera, lens, settings)
+    times["project_ms"] = _ms(t)
+
+    t = time.perf_counter()
+    bands = plan_bands(bbox, visible, camera, settings)
+    times["bin_ms"] = _ms(t)
+
+    image, depth, weight, raster_stats = rasterize(splats, bbox, visible, bands, camera, settings)
+    times["bin_ms"] += raster_stats.pop("bin_ms")
+    times["raster_ms"] = raster_stats.pop("raster_ms")
+    times["total_ms"] = _ms(t_start)
+
+    stats = {
+        "points_in": int(len(surfels)),
+        "splats_rendered": int(np.count_nonzero(visible)),
+        **raster_stats,
+        "width": camera.width,
+        "height": camera.height,
+        **times,
+    }
+    return RenderResult(image=image, depth=depth, weight=weight, stats=stats)
+
+
+# -- stages ------------------------------------------------------------------------------
+
+
+def shade_surfels(surfels: Surfels, camera: Camera, settings: RenderSettings) -> np.ndarray:
+    """Per-splat shading before splatting (Section 6.5): (N, 3) float32 linear RGB."""
+    if settings.shading == "none":
+        return surfels.colors
+    return shade(surfels.positions, surfels.normals, surfels.colors, surfels.material, camera,
+                 settings.lights, two_sided=not settings.cull_backfaces)
+
+
+def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float]:
+    """(K, 1/P) with C_r(U) = K |1/U - 1/P|; (0, 0) for a pinhole."""
+    if lens is None or not settings.dof:
+        return 0.0, 0.0
+    return lens.coc_coefficients(camera)
+
+
+def surfel_arrays(surfels: Surfels):
+    """(tangents, r_u, r_v, area) as the kernels take them; tangents is (0, 3) for disks."""
+    ru = surfels.radius
+    if surfels.is_elliptical:
+        tangents, rv = surfels.tangent, surfels.radius_v
+    else:
+        tangents, rv = np.zeros((0, 3), np.float32), surfels.radius
+    area = ru * rv  # the area a surfel stands for (surfels.py)
+    if surfels.weight is not None:
+        area = area * surfels.weight
+    return tangents, ru, rv, area.astype(np.float32)
+
+
+def project(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
+            vq: np.ndarray | None = None):
+    """EWA projection with the DOF blur (eqs. 8, 11): splats (N, N_FIELDS), bbox, visible."""
+    from .splat.project import N_FIELDS, project_splats
+
+    n = len(surfels)
+    tangents, ru, rv, area = surfel_arrays(surfels)
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    ax, bx, ay, by = camera.screen_coefficients()
+    near = camera.frustum_lrbtn()[4]
+    view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
+    splats = np.empty((n, N_FIELDS), np.float64)
+    bbox = np.empty((n, 4), np.int32)
+    visible = np.empty(n, np.bool_)
+    vq = np.zeros(0, np.float32) if vq is None else np.ascontiguousarray(vq, np.float32)
+    project_splats(surfels.positions, surfels.normals, tangents, ru, rv, area,
+                   np.ascontiguousarray(rgb, np.float32), surfels.opacity, vq, view,
+                   ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
+                   float(settings.cutoff), float(settings.z_thickness),
+                   bool(settings.cull_backfaces), bool(settings.exact_normalization),
+                   splats, bbox, visible)
+    return splats, bbox, visible
+
+
+def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings) -> list[tuple[int, int]]:
+    """Cut the tile rows into bands whose tile-splat pairs fit the memory budget."""
+    from .raster.abuffer import TILE, tile_rows_pairs
+
+    n_ty = -(-camera.height // TILE)
+    per_row = tile_rows_pairs(bbox, visible, TILE, n_ty)
+    bands, start, acc = [], 0, 0
+    for ty in range(n_ty):
+        if acc and acc + per_row[ty] > settings.max_tile_pairs:
+            bands.append((start, ty))
+            start, acc = ty, 0
+        acc += int(per_row[ty])
+    bands.append((start, n_ty))
+    return bands
+
+
+def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings):
+    """A-buffer rasterisation and resolve, band by band (Section 6.4)."""
+    from .raster.abuffer import TILE, bin_splats, rasterize_band
+
+    w, h = camera.width, camera.height
+    n_tx = -(-w // TILE)
+    image = np.empty((h, w, 4), np.float32)
+    depth = np.empty((h, w), np.float32)
+    weight = np.empty((h, w), np.float32)
+    background = np.asarray(settings.background, np.float64)
+    frags = overflows = pairs = 0
+    bin_ms = raster_ms = 0.0
+    for ty0, ty1 in bands:
+        t = time.perf_counter()
+        offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
+        bin_ms += _ms(t)
+        t = time.perf_counter()
+        tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
+        rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
+                       background, image, depth, weight, tile_stats)
+        raster_ms += _ms(t)
+        frags += int(tile_stats[:, 0].sum())
+        overflows += int(tile_stats[:, 1].sum())
+        pairs += len(ids)
+    stats = {"fragments": frags, "abuffer_overflows": overflows, "tile_pairs": pairs,
+             "bands": len(bands), "bin_ms": bin_ms, "raster_ms": raster_ms}
+    return image, depth, weight, stats
+
+
+# -- helpers -----------------------------------------------------------------------------
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel, so that timings exclude JIT."""
+    global _WARM
+    if _WARM:
+        return
+    _WARM = True
+    s = Surfels(positions=[[0, 0, 0], [0.1, 0, 0]], normals=[[0, 0, 1], [0, 0, 1]],
+                radius=[0.1, 0.1], colors=[[1, 1, 1], [1, 1, 1]],
+                tangent=[[1, 0, 0], [1, 0, 0]], radius_v=[0.05, 0.05])
+    cam = Camera(eye=(0, 0, 1), target=(0, 0, 0), width=8, height=8)
+    for surf in (s, s.subset(np.array([0, 1]))):
+        render(surf, cam, ThinLens(focus_distance=0.5, aperture=0.1))
+    circ = Surfels(positions=s.positions, normals=s.normals, radius=s.radius, colors=s.colors)
+    render(circ, cam, None)
+
+
+def focus_distance_at(surfels: Surfels, camera: Camera, x: float, y: float,
+                      settings: RenderSettings | None = None) -> float:
+    """Depth of the surface seen at pixel position (x, y) in a pinhole render: for autofocus."""
+    settings = settings or RenderSettings()
+    if not (0 <= x < camera.width and 0 <= y < camera.height):
+        raise DofsplatError(f"focus pixel ({x:g}, {y:g}) lies outside the {camera.width}x{camera.height} image")
+    pinhole = render(surfels, camera, None, settings)
+    d = float(pinhole.depth[int(y), int(x)])
+    if not math.isfinite(d):
+        raise DofsplatError(f"no surface is seen at pixel ({x:g}, {y:g}) to focus on")
+    return d
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0

@@ -1,0 +1,237 @@
+"""Slow, obviously correct twins of the fast kernels, for the tests.
+
+Everything here is numpy or plain Python, written from the paper's formulas in matrix form
+rather than from the kernels' scalar code:
+
+* ``project_reference``: transform, cull, J = dProj/dp . [t_u t_v], W = J V^r J^T + I + V^I
+  (eq. 11, or eq. 12 with ``circumellipse_eig`` for LOD), bounding box and kernel sum over
+  the pixel centres;
+* ``rasterize_reference``: one global A-buffer of Python lists, splats in index order, the
+  z-range merge rules of Section 6.4, and front-to-back "over" compositing;
+* ``circumellipse_appendix``: Appendix A's conic-coefficient algorithm (eqs. 13-14) as printed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .camera import Camera
+from .render import RenderSettings, coc_coefficients, surfel_arrays
+from .surfels import Surfels, tangent_frame
+
+LN4 = math.log(4.0)
+
+
+def circumellipse_eig(m, r):
+    """Variance containing both the ellipse of variance m (2x2) and the circle r I."""
+    lam, vec = np.linalg.eigh(np.asarray(m, np.float64))
+    return vec @ np.diag(np.maximum(lam, r)) @ vec.T
+
+
+def circumellipse_appendix(A, B, C, r):
+    """Appendix A as printed: M = [[A, B/2], [B/2, C]], circle R = r. Returns (A'', B'', C'').
+
+    Note B is twice the off-diagonal element, as in the appendix.
+    """
+    swapped = A < C
+    if swapped:
+        A, C = C, A
+    root = math.sqrt((A - C) ** 2 + B * B)
+    a1 = (A + C + root) / 2  # eq. 13
+    c1 = (A + C - root) / 2
+    a1, c1 = max(a1, r), max(c1, r)
+    if root == 0.0:
+        cos2, sin2t = 1.0, 0.0
+    else:
+        cos2 = 0.5 * ((A - C) / root + 1)  # eq. 14
+        sin2t = B / root
+    a2 = (a1 - c1) * cos2 + c1
+    b2 = (a1 - c1) * sin2t
+    c2 = (c1 - a1) * cos2 + a1
+    if swapped:
+        a2, c2 = c2, a2
+    return a2, b2, c2
+
+
+def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
+                      settings: RenderSettings, vq=None):
+    """numpy twin of ``render.project``: (splats (N, 14), bbox (N, 4), visible (N,))."""
+    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
+                                EXACT_NORMALISATION_MAX_AREA, GREEN, MX, MY, N_FIELDS, RED,
+                                ZHI, ZLO)
+
+    n = len(surfels)
+    c = float(settings.cutoff)
+    tangents, ru, rv, area = surfel_arrays(surfels)
+    view = camera.camera_from_world()
+    rot = view[:3, :3]
+    p = surfels.positions.astype(np.float64) @ rot.T + view[:3, 3]
+    nrm = surfels.normals.astype(np.float64) @ rot.T
+    if surfels.is_elliptical:
+        tu = surfels.tangent.astype(np.float64) @ rot.T
+    else:
+        tu = tangent_frame(surfels.normals)[0].astype(np.float64) @ rot.T
+    tv = np.cross(nrm, tu)
+    depth = -p[:, 2]
+    ax, bx, ay, by = camera.screen_coefficients()
+    near = camera.frustum_lrbtn()[4]
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+
+    splats = np.zeros((n, N_FIELDS))
+    bbox = np.zeros((n, 4), np.int32)
+    visible = np.zeros(n, bool)
+    for k in range(n):
+        u = depth[k]
+        if u <= near:
+            continue
+        if settings.cull_backfaces and nrm[k] @ p[k] >= 0:
+            continue
+        X, Y = p[k, 0], p[k, 1]
+        m = np.array([ax * X / u + bx, -ay * Y / u + by])
+        # derivative of the projection at p, (2, 3), applied to the tangent frame
+        d_proj = np.array([[ax / u, 0.0, ax * X / u ** 2],
+                           [0.0, -ay / u, -ay * Y / u ** 2]])
+        J = d_proj @ np.stack([tu[k], tv[k]], axis=1)
+        su, sv = 0.5 * ru[k], 0.5 * rv[k]
+        Vr = np.diag([su * su, sv * sv])
+        coc_r = coc_k * abs(1.0 / u - inv_focus)
+        v_dof = coc_r ** 2 / (2 * LN4)
+        if vq is not None and vq[k] > 0:
+            blur = circumellipse_eig(vq[k] * J @ J.T, v_dof)
+        else:
+            blur = v_dof * np.eye(2)
+        W = J @ Vr @ J.T + np.eye(2) + blur
+        hx, hy = math.sqrt(2 * c * W[0, 0]), math.sqrt(2 * c * W[1, 1])
+        x0, x1 = math.floor(m[0] - hx - 0.5), math.ceil(m[0] + hx - 0.5)
+        y0, y1 = math.floor(m[1] - hy - 0.5), math.ceil(m[1] + hy - 0.5)
+        cx0, cx1 = max(x0, 0), min(x1, camera.width - 1)
+        cy0, cy1 = max(y0, 0), min(y1, camera.height - 1)
+        if cx0 > cx1 or cy0 > cy1:
+            continue
+        Wi = np.linalg.inv(W)
+        area_px = abs(np.linalg.det(J)) * area[k]
+        total = 0.0
+        if settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
+            q = _exponents(m, Wi, x0, x1, y0, y1)
+            total = float(np.exp(-q[q < c]).sum())
+        if total > 0:
+            amp = area_px / total
+        else:
+            amp = area_px / (2 * math.pi * math.sqrt(np.linalg.det(W)) * (1 - math.exp(-c)))
+        reach = math.sqrt(2 * c)
+        half = reach * math.hypot(su * tu[k, 2], sv * tv[k, 2]) + settings.z_thickness * max(ru[k], rv[k])
+        splats[k, [MX, MY]] = m
+        splats[k, [C11, C12, C22]] = Wi[0, 0], Wi[0, 1], Wi[1, 1]
+        splats[k, AMP] = amp
+        splats[k, [ZLO, ZHI, DEPTH]] = u - half, u + half, u
+        splats[k, [RED, GREEN, BLUE]] = rgb[k]
+        splats[k, ALPHA] = surfels.opacity[k]
+        splats[k, COC] = coc_r
+        bbox[k] = cx0, cx1, cy0, cy1
+        visible[k] = True
+    return splats, bbox, visible
+
+
+def _exponents(m, Wi, x0, x1, y0, y1):
+    """1/2 d^T W^-1 d at the pixel centres of the box [x0, x1] x [y0, y1] (rows y, cols x)."""
+    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1] + 0.5
+    d = np.stack([xs - m[0], ys - m[1]], axis=-1)
+    return 0.5 * np.einsum("...i,ij,...j->...", d, Wi, d)
+
+
+def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
+                        max_surfaces: int = 8):
+    """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments)."""
+    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, RED,
+                                ZHI, ZLO)
+
+    # per pixel: list of surfaces [w, wr, wg, wb, wa, wd, zlo, zhi]
+    abuf = [[[] for _ in range(width)] for _ in range(height)]
+    fragments = 0
+    for k in np.flatnonzero(visible):
+        s = splats[k]
+        Wi = np.array([[s[C11], s[C12]], [s[C12], s[C22]]])
+        x0, x1, y0, y1 = bbox[k]
+        q = _exponents(s[[MX, MY]], Wi, x0, x1, y0, y1)
+        for i, j in zip(*np.nonzero(q < cutoff)):
+            w = s[AMP] * math.exp(-q[i, j])
+            frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
+                    s[ZLO], s[ZHI]]
+            _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
+            fragments += 1
+    image = np.zeros((height, width, 4))
+    depth = np.full((height, width), np.inf)
+    weight = np.zeros((height, width))
+    for i in range(height):
+        for j in range(width):
+            image[i, j], depth[i, j], weight[i, j] = _resolve(abuf[i][j], background)
+    return image, depth, weight, fragments
+
+
+def _overlaps(a, b):
+    return a[6] <= b[7] and a[7] >= b[6]
+
+
+def _add(dst, src):
+    for f in range(6):
+        dst[f] += src[f]
+    dst[6] = min(dst[6], src[6])
+    dst[7] = max(dst[7], src[7])
+
+
+def _insert(surfaces, frag, max_surfaces):
+    hit = next((i for i, s in enumerate(surfaces) if _overlaps(frag, s)), None)
+    if hit is None and len(surfaces) == max_surfaces:
+        gaps = [max(s[6] - frag[7], frag[6] - s[7]) for s in surfaces]
+        hit = int(np.argmin(gaps))
+    if hit is None:
+        surfaces.append(list(frag))
+        return
+    _add(surfaces[hit], frag)
+    # coalesce: surfaces the united range now reaches are the same surface
+    j = 0
+    while j < len(surfaces):
+        if j != hit and _overlaps(surfaces[j], surfaces[hit]):
+            _add(surfaces[hit], surfaces[j])
+            last = len(surfaces) - 1
+            surfaces[j] = surfaces[last]  # same slot bookkeeping as the kernel
+            surfaces.pop()
+            if hit == last:
+                hit = j
+            j = 0
+            continue
+        j += 1
+
+
+def _resolve(surfaces, background):
+    def mean_depth(s):
+        return s[5] / s[0] if s[0] > 0 else 0.5 * (s[6] + s[7])
+
+    order = sorted(range(len(surfaces)), key=lambda i: (mean_depth(surfaces[i]), i))
+    trans, rgb = 1.0, np.zeros(3)
+    best, best_depth = 0.0, np.inf
+    for i in order:
+        s = surfaces[i]
+        if s[0] <= 0:
+            continue
+        alpha = min(1.0, s[0]) * s[4] / s[0]
+        rgb += trans * alpha * np.array(s[1:4]) / s[0]
+        if trans * alpha > best:
+            best, best_depth = trans * alpha, mean_depth(s)
+        trans *= 1 - alpha
+    rgb += trans * np.asarray(background)
+    nearest = surfaces[order[0]][0] if order else 0.0
+    return np.array([*rgb, 1 - trans]), best_depth, nearest
+
+
+def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None):
+    """The whole pipeline from the twins (shading is shared: it is numpy already)."""
+    from .render import shade_surfels
+
+    settings = settings or RenderSettings()
+    rgb = shade_surfels(surfels, camera, settings)
+    splats, bbox, visible = project_reference(surfels, rgb, camera, lens, settings)
+    return rasterize_reference(splats, bbox, visible, camera.width, camera.height,
+                               settings.cutoff, settings.background)

@@ -1,0 +1,1 @@
+"""Per-splat projection: Jacobian, resampling kernel, DOF variance, circumellipse."""

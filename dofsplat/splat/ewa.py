@@ -1,0 +1,244 @@
+"""Per-splat EWA maths (paper Sections 4.2, 5.1, 5.2, 6.2, Appendix A) as scalar functions.
+
+Scalar functions on floats, each wrapped by ``shared``: numba-jitted for the CPU kernels
+(dispatchers compile lazily, on first call, and are cached on disk); the plain Python
+function stays reachable as ``.py_func`` so that a GPU backend can compile the very same
+source as device functions. The two backends share one copy of the maths. The slow numpy twins in ``dofsplat.slow``
+re-derive the same quantities independently, and the tests compare the two.
+
+Screen conventions are those of ``dofsplat.camera``: x_px = a_x X/U + b_x,
+y_px = -a_y Y/U + b_y with depth U = -Z in camera space.
+"""
+
+import math
+
+import numba
+
+# jitted on first use; cache=True keeps the machine code between processes
+shared = numba.njit(cache=True, nogil=True)
+
+LN4 = math.log(4.0)
+# 1 / (2 ln 4): the L2-best circular Gaussian variance for a uniform disc of radius 1 (eq. after 5.2)
+DOF_VARIANCE_FACTOR = 1.0 / (2.0 * LN4)
+
+
+@shared
+def coc_radius_px(depth, coc_k, inv_focus):
+    """C_r = K |1/U - 1/P| pixels (eqs. 1-3 reduced; see camera.py)."""
+    return coc_k * abs(1.0 / depth - inv_focus)
+
+
+@shared
+def dof_variance(coc_r):
+    """V^I = C_r^2 / (2 ln 4), the circular DOF Gaussian's variance per axis (Section 5.2)."""
+    return coc_r * coc_r * DOF_VARIANCE_FACTOR
+
+
+@shared
+def tangent_from_normal(nx, ny, nz):
+    """A unit tangent perpendicular to the unit normal n: n x e, e the axis least aligned with n."""
+    ax, ay, az = abs(nx), abs(ny), abs(nz)
+    if ax <= ay and ax <= az:  # e = x
+        tx, ty, tz = 0.0, nz, -ny
+    elif ay <= az:  # e = y
+        tx, ty, tz = -nz, 0.0, nx
+    else:  # e = z
+        tx, ty, tz = ny, -nx, 0.0
+    inv = 1.0 / math.sqrt(tx * tx + ty * ty + tz * tz)
+    return tx * inv, ty * inv, tz * inv
+
+
+@shared
+def jacobian_column(px, py, pz, tx, ty, tz, ax, ay):
+    """d(x_px, y_px)/ds along the camera-space tangent t at camera-space point p (pz < 0).
+
+    Differentiating x = a_x X/U with U = -Z: dx = a_x (t_x U + X t_z) / U^2, and
+    y = -a_y Y/U gives dy = -a_y (t_y U + Y t_z) / U^2.
+    """
+    u = -pz
+    inv_u2 = 1.0 / (u * u)
+    return ax * (tx * u + px * tz) * inv_u2, -ay * (ty * u + py * tz) * inv_u2
+
+
+@shared
+def circumellipse(m11, m12, m22, r):
+    """Variance of the smallest ellipse containing the ellipse M and the circle r I (Appendix A).
+
+    In M's eigenbasis the eigenvalues are clamped from below by r and the result is rotated
+    back; the appendix's conic-coefficient route (eqs. 13-14) gives the same matrix
+    (``dofsplat.slow.circumellipse_appendix`` is that route, and the tests compare them).
+    """
+    half_tr = 0.5 * (m11 + m22)
+    diff = 0.5 * (m11 - m22)
+    rad = math.sqrt(diff * diff + m12 * m12)
+    l1 = half_tr + rad  # larger eigenvalue
+    l2 = half_tr - rad
+    if rad == 0.0:  # M is a circle: any basis is an eigenbasis
+        lam = max(l1, r)
+        return lam, 0.0, lam
+    # unit eigenvector of l1: (m12, l1 - m11) or (l1 - m22, m12), whichever is longer
+    vx, vy = l1 - m22, m12
+    n2 = vx * vx + vy * vy
+    if n2 < 1e-300:
+        vx, vy = m12, l1 - m11
+        n2 = vx * vx + vy * vy
+    inv = 1.0 / math.sqrt(n2)
+    c, s = vx * inv, vy * inv
+    l1 = max(l1, r)
+    l2 = max(l2, r)
+    return (l1 * c * c + l2 * s * s, (l1 - l2) * c * s, l1 * s * s + l2 * c * c)
+
+
+@shared
+def kernel_variance(j11, j12, j21, j22, su, sv, vq, v_dof):
+    """Screen-space variance W of the blurred resampling kernel, (w11, w12, w22).
+
+    J = [[j11, j12], [j21, j22]] maps the tangent-plane axes (u, v) to pixels;
+    V^r = diag(su^2, sv^2) is the basis variance; vq is the isotropic object-space
+    low-pass filter variance of an LOD level (0 at the leaves), v_dof the DOF variance.
+
+        W = J V^r J^T + I + circumellipse(J V^q J^T, V^I)     (eq. 12 with Section 6.2)
+
+    With vq = 0 the circumellipse is V^I itself and this is eq. 11.
+    """
+    a11, a21 = j11 * su, j21 * su
+    a12, a22 = j12 * sv, j22 * sv
+    w11 = a11 * a11 + a12 * a12 + 1.0
+    w12 = a11 * a21 + a12 * a22
+    w22 = a21 * a21 + a22 * a22 + 1.0
+    if vq > 0.0:
+        q11 = vq * (j11 * j11 + j12 * j12)
+        q12 = vq * (j11 * j21 + j12 * j22)
+        q22 = vq * (j21 * j21 + j22 * j22)
+        d11, d12, d22 = circumellipse(q11, q12, q22, v_dof)
+    else:
+        d11, d12, d22 = v_dof, 0.0, v_dof
+    return w11 + d11, w12 + d12, w22 + d22
+
+
+@shared
+def conic(w11, w12, w22):
+    """Inverse of W, (c11, c12, c22), and det W."""
+    det = w11 * w22 - w12 * w12
+    inv = 1.0 / det
+    return w22 * inv, -w12 * inv, w11 * inv, det
+
+
+@shared
+def row_span(dy, c11, c12, c22, cutoff):
+    """Interval (dx_lo, dx_hi) of offsets dx where 1/2 [dx dy] W^-1 [dx dy]^T < cutoff.
+
+    Returns (1.0, -1.0), an empty interval, when the row misses the ellipse.
+    """
+    # c11 dx^2 + 2 c12 dy dx + c22 dy^2 - 2 cutoff < 0
+    b = c12 * dy
+    disc = b * b - c11 * (c22 * dy * dy - 2.0 * cutoff)
+    if disc < 0.0:
+        return 1.0, -1.0
+    root = math.sqrt(disc)
+    return (-b - root) / c11, (-b + root) / c11
+
+
+@shared
+def exponent(dx, dy, c11, c12, c22):
+    """beta/2 = 1/2 x^T W^-1 x: the kernel is exp(-exponent), truncated where it reaches c."""
+    return 0.5 * (c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy)
+
+
+@shared
+def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by, near,
+                   coc_k, inv_focus, vq, cutoff, z_margin, cull_backfaces):
+    """Project one surfel; everything but the kernel's pixel sum.
+
+    p_world, n_world, t_world: 3-tuples (t_world = (0, 0, 0) for a circular surfel);
+    ru, rv: disk radii along t and n x t (world units); area: the area the surfel stands
+    for (world units^2, normalisation weight included); view: 12-tuple, rows of the 3x4
+    camera_from_world matrix.
+
+    Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r): ok is False for
+    a culled surfel (behind the near plane, or a back face when culling is on).
+    """
+    px = view[0] * p_world[0] + view[1] * p_world[1] + view[2] * p_world[2] + view[3]
+    py = view[4] * p_world[0] + view[5] * p_world[1] + view[6] * p_world[2] + view[7]
+    pz = view[8] * p_world[0] + view[9] * p_world[1] + view[10] * p_world[2] + view[11]
+    depth = -pz
+    if depth <= near:
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0
+    nx = view[0] * n_world[0] + view[1] * n_world[1] + view[2] * n_world[2]
+    ny = view[4] * n_world[0] + view[5] * n_world[1] + view[6] * n_world[2]
+    nz = view[8] * n_world[0] + view[9] * n_world[1] + view[10] * n_world[2]
+    if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:  # normal points away from the eye
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0
+    if t_world[0] == 0.0 and t_world[1] == 0.0 and t_world[2] == 0.0:
+        tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
+    else:
+        tux = view[0] * t_world[0] + view[1] * t_world[1] + view[2] * t_world[2]
+        tuy = view[4] * t_world[0] + view[5] * t_world[1] + view[6] * t_world[2]
+        tuz = view[8] * t_world[0] + view[9] * t_world[1] + view[10] * t_world[2]
+    # t_v = n x t_u completes the right-handed tangent frame
+    tvx = ny * tuz - nz * tuy
+    tvy = nz * tux - nx * tuz
+    tvz = nx * tuy - ny * tux
+
+    mx = ax * px / depth + bx
+    my = -ay * py / depth + by
+    j11, j21 = jacobian_column(px, py, pz, tux, tuy, tuz, ax, ay)
+    j12, j22 = jacobian_column(px, py, pz, tvx, tvy, tvz, ax, ay)
+    det_j = abs(j11 * j22 - j12 * j21)
+
+    # basis variance: the disk radius is the Gaussian's 2-sigma contour (surfels.py)
+    su, sv = 0.5 * ru, 0.5 * rv
+    coc_r = coc_radius_px(depth, coc_k, inv_focus)
+    w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, vq, dof_variance(coc_r))
+
+    # z-range of the basis function r_k in camera space, not enlarged by the blur (Section 6.4):
+    # the truncated disk reaches sqrt(2c) sigma along each axis; z_margin adds a thickness
+    reach = math.sqrt(2.0 * cutoff)
+    half = reach * math.sqrt((su * tuz) ** 2 + (sv * tvz) ** 2) + z_margin * max(ru, rv)
+    return True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r
+
+
+# -- pixel footprint of a truncated kernel ----------------------------------------------
+
+COORD_LIMIT = 1.0e9  # clamp screen coordinates before converting them to int
+
+
+@shared
+def row_pixel_range(i, mx, my, c11, c12, c22, cutoff):
+    """Inclusive pixel columns (j0, j1) of row i that may lie inside the truncated kernel.
+
+    One pixel wider than the analytic span on each side: the per-pixel test
+    ``exponent < cutoff`` decides, identically in every implementation.
+    """
+    lo, hi = row_span(i + 0.5 - my, c11, c12, c22, cutoff)
+    if lo > hi:
+        return 1, 0
+    j0 = math.floor(max(mx + lo - 0.5, -COORD_LIMIT))
+    j1 = math.ceil(min(mx + hi - 0.5, COORD_LIMIT))
+    return int(j0), int(j1)
+
+
+@shared
+def kernel_bbox(mx, my, w11, w22, cutoff):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the kernel truncated at cutoff."""
+    hx = math.sqrt(2.0 * cutoff * w11)
+    hy = math.sqrt(2.0 * cutoff * w22)
+    x0 = math.floor(max(mx - hx - 0.5, -COORD_LIMIT))
+    x1 = math.ceil(min(mx + hx - 0.5, COORD_LIMIT))
+    y0 = math.floor(max(my - hy - 0.5, -COORD_LIMIT))
+    y1 = math.ceil(min(my + hy - 0.5, COORD_LIMIT))
+    return int(x0), int(x1), int(y0), int(y1)
+
+
+@shared
+def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, y0, y1):
+    """Sum of exp(-exponent) over all pixel centres inside the truncated kernel (unclipped)."""
+    total = 0.0
+    for i in range(y0, y1 + 1):
+        j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff)
+        dy = i + 0.5 - my
+        for j in range(j0, j1 + 1):
+            q = exponent(j + 0.5 - mx, dy, c11, c12, c22)
+            if q < cutoff:
+                total += math.exp(-q)
+    return total

@@ -1,0 +1,96 @@
+"""Projection of all surfels to screen-space splats: the numba kernel of the CPU backend.
+
+Output, one row per surfel in a float64 (N, N_FIELDS) array (columns ``SPLAT_FIELDS``):
+screen mean, conic (inverse variance), amplitude, z-range, depth, shaded colour, opacity,
+CoC radius; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1, inclusive) clipped to the
+image; and a visibility flag. A splat's fragment weight at pixel centre x is
+
+    amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
+
+with amp = (surfel area in pixels) / (the kernel's sum over its pixel centres), so that each
+splat deposits exactly its area in pixels (Section 6.3's partition of unity, made exact for
+point sampling; docs/maths.md).
+"""
+
+import math
+
+import numba
+import numpy as np
+
+from .ewa import kernel_bbox, kernel_pixel_sum, project_surfel
+
+MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC = range(14)
+N_FIELDS = 14
+SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
+                "red", "green", "blue", "alpha", "coc_radius_px")
+
+# Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
+# by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
+# centres. Point sampling misses the integral of a truncated Gaussian a few pixels wide by
+# up to ~2 %; at this size the analytic factor is within ~3e-4 (docs/maths.md).
+EXACT_NORMALISATION_MAX_AREA = 16384
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, vq, view,
+                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+                   z_margin, cull_backfaces, exact_norm, out, bbox, visible):
+    """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
+
+    positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
+    (0, 3); ru, rv: (N,) disk radii; area: (N,) world area each surfel stands for; rgb (N, 3)
+    shaded linear colour; alpha (N,) opacity; vq: (N,) LOD filter variances or (0,);
+    view: (12,) rows of camera_from_world[:3]; the rest are scalars (see ewa.project_surfel).
+    """
+    n = positions.shape[0]
+    elliptical = tangents.shape[0] == n
+    has_vq = vq.shape[0] == n
+    view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
+              view[8], view[9], view[10], view[11])
+    analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
+    for k in numba.prange(n):
+        visible[k] = False
+        p = (np.float64(positions[k, 0]), np.float64(positions[k, 1]), np.float64(positions[k, 2]))
+        nn = (np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2]))
+        t = (0.0, 0.0, 0.0)
+        if elliptical:
+            t = (np.float64(tangents[k, 0]), np.float64(tangents[k, 1]), np.float64(tangents[k, 2]))
+        v_q = np.float64(vq[k]) if has_vq else 0.0
+        ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r = project_surfel(
+            p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
+            ax, bx, ay, by, near, coc_k, inv_focus, v_q, cutoff, z_margin, cull_backfaces)
+        if not ok:
+            continue
+        x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
+        cx0, cx1 = max(x0, 0), min(x1, width - 1)
+        cy0, cy1 = max(y0, 0), min(y1, height - 1)
+        if cx0 > cx1 or cy0 > cy1:
+            continue  # outside the view frustum
+        det = w11 * w22 - w12 * w12
+        c11, c12, c22 = w22 / det, -w12 / det, w11 / det
+        norm = 0.0
+        if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
+            norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, y0, y1)
+        if norm > 0.0:
+            amp = area_px / norm
+        else:
+            amp = area_px * analytic / math.sqrt(det)
+        out[k, MX] = mx
+        out[k, MY] = my
+        out[k, C11] = c11
+        out[k, C12] = c12
+        out[k, C22] = c22
+        out[k, AMP] = amp
+        out[k, ZLO] = zlo
+        out[k, ZHI] = zhi
+        out[k, DEPTH] = depth
+        out[k, RED] = rgb[k, 0]
+        out[k, GREEN] = rgb[k, 1]
+        out[k, BLUE] = rgb[k, 2]
+        out[k, ALPHA] = alpha[k]
+        out[k, COC] = coc_r
+        bbox[k, 0] = cx0
+        bbox[k, 1] = cx1
+        bbox[k, 2] = cy0
+        bbox[k, 3] = cy1
+        visible[k] = True

@@ -1,0 +1,238 @@
+"""Surfels: the point-based surface as a structure of arrays.
+
+A surfel k is a small oriented disk: a position P_k, a normal, a radius, a colour and an
+opacity (paper Section 4.2, Figure 2). Its basis function r_k is a Gaussian in the tangent
+plane. How the disk radius maps to the Gaussian (docs/maths.md, "Radius and variance"):
+
+* the Gaussian's standard deviation along each tangent axis is half the disk radius,
+  V_k^r = diag((r_u/2)^2, (r_v/2)^2): the disk of radius r is the Gaussian's 2-sigma
+  contour, so with a cutoff c = 2.5 the kernel reaches 1.12 r;
+* the surfel stands for a piece of surface of area r_u * r_v (times the optional
+  per-surfel normalisation ``weight``). A regular grid of spacing h therefore wants
+  r = h, and its accumulated weights sum to 1 (partition of unity, Section 6.3), which is
+  what makes the accumulated weight a coverage estimate.
+
+Elliptical surfels (for instance from 3D Gaussian splats) give a unit ``tangent`` (the
+direction of the first axis, r_u = ``radius``) and ``radius_v`` for the second axis, which
+is normal x tangent.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import DofsplatError
+
+
+@dataclass(frozen=True)
+class Material:
+    """Phong material shared by all surfels of a model (Section 6.5)."""
+
+    ambient: float = 0.15  # fraction of the surfel colour lit by ambient light
+    diffuse: float = 0.85  # Lambertian fraction
+    specular: float = 0.25  # white specular highlight strength
+    shininess: float = 32.0  # Phong exponent
+
+    def __post_init__(self):
+        for name in ("ambient", "diffuse", "specular"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0:
+                raise DofsplatError(f"material {name} must be a finite number >= 0, got {v}")
+        if not np.isfinite(self.shininess) or self.shininess <= 0:
+            raise DofsplatError(f"material shininess must be > 0, got {self.shininess}")
+
+
+@dataclass
+class Surfels:
+    """A surfel model as parallel arrays (N surfels).
+
+    positions: (N, 3) float32, world units
+    normals:   (N, 3) float32, unit length (normalised at construction)
+    radius:    (N,)   float32, world units, disk radius (first tangent axis for ellipses)
+    colors:    (N, 3) float32, linear RGB in [0, 1]
+    opacity:   (N,)   float32 in [0, 1]; 1 is opaque
+    tangent:   (N, 3) float32 or None, unit first tangent axis of elliptical surfels
+    radius_v:  (N,)   float32 or None, disk radius along normal x tangent
+    weight:    (N,)   float32 or None, per-surfel normalisation factor on the area r_u*r_v
+    material:  Phong material for the whole model
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    radius: np.ndarray
+    colors: np.ndarray
+    opacity: np.ndarray | None = None
+    tangent: np.ndarray | None = None
+    radius_v: np.ndarray | None = None
+    weight: np.ndarray | None = None
+    material: Material = field(default_factory=Material)
+
+    def __post_init__(self):
+        n = _rows(self.positions, 3, "positions")
+        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
+        self.normals = np.ascontiguousarray(self.normals, dtype=np.float32)
+        _check_shape(self.normals, (n, 3), "normals")
+        self.radius = _column(self.radius, n, "radius")
+        self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
+        _check_shape(self.colors, (n, 3), "colors")
+        self.opacity = (np.ones(n, np.float32) if self.opacity is None
+                        else _column(self.opacity, n, "opacity"))
+        if (self.tangent is None) != (self.radius_v is None):
+            raise DofsplatError("elliptical surfels need both 'tangent' and 'radius_v'")
+        if self.tangent is not None:
+            self.tangent = np.ascontiguousarray(self.tangent, dtype=np.float32)
+            _check_shape(self.tangent, (n, 3), "tangent")
+            self.radius_v = _column(self.radius_v, n, "radius_v")
+        if self.weight is not None:
+            self.weight = _column(self.weight, n, "weight")
+        self._validate()
+
+    def __len__(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def is_elliptical(self) -> bool:
+        return self.tangent is not None
+
+    def _validate(self):
+        n = len(self)
+        finite = [self.positions, self.normals, self.radius, self.colors, self.opacity]
+        finite += [a for a in (self.tangent, self.radius_v, self.weight) if a is not None]
+        for a in finite:
+            if not np.all(np.isfinite(a)):
+                raise DofsplatError("surfel arrays contain NaN or inf; use Surfels.from_arrays "
+                                    "to drop such rows")
+        lengths = np.linalg.norm(self.normals, axis=1)
+        bad = int(np.count_nonzero(lengths < 1e-12))
+        if bad:
+            raise DofsplatError(f"{bad} of {n} surfels have a zero-length normal")
+        self.normals /= lengths[:, None]
+        bad = int(np.count_nonzero(self.radius <= 0))
+        if self.radius_v is not None:
+            bad = max(bad, int(np.count_nonzero(self.radius_v <= 0)))
+        if bad:
+            raise DofsplatError(f"{bad} of {n} surfels have a radius <= 0")
+        if self.tangent is not None:
+            # project the tangent into the surfel's plane and normalise it
+            t = self.tangent - np.sum(self.tangent * self.normals, 1)[:, None] * self.normals
+            tl = np.linalg.norm(t, axis=1)
+            bad = int(np.count_nonzero(tl < 1e-9))
+            if bad:
+                raise DofsplatError(f"{bad} of {n} elliptical surfels have a tangent "
+                                    "parallel to their normal")
+            self.tangent = (t / tl[:, None]).astype(np.float32)
+        np.clip(self.colors, 0.0, None, out=self.colors)
+        np.clip(self.opacity, 0.0, 1.0, out=self.opacity)
+        if self.weight is not None and np.any(self.weight < 0):
+            raise DofsplatError("surfel normalisation weights must be >= 0")
+
+    @classmethod
+    def from_arrays(cls, positions, normals, radius, colors, opacity=None, *,
+                    tangent=None, radius_v=None, weight=None,
+                    material: Material | None = None, source: str = "input") -> "Surfels":
+        """Build surfels from raw arrays, dropping rows with NaN or inf (with one warning).
+
+        Zero-length normals and non-positive radii are errors, not dropped: they mean the
+        data is wrong, not merely incomplete.
+        """
+        n = _rows(positions, 3, "positions")
+        arrays = {"positions": positions, "normals": normals, "radius": radius,
+                  "colors": colors, "opacity": opacity, "tangent": tangent,
+                  "radius_v": radius_v, "weight": weight}
+        arrays = {k: (None if v is None else np.asarray(v, dtype=np.float32))
+                  for k, v in arrays.items()}
+        keep = np.ones(n, bool)
+        for k, a in arrays.items():
+            if a is None:
+                continue
+            if a.shape[0] != n:
+                raise DofsplatError(f"{k} has {a.shape[0]} rows but positions has {n}")
+            keep &= np.all(np.isfinite(a.reshape(n, -1)), axis=1)
+        dropped = n - int(keep.sum())
+        if dropped:
+            warnings.warn(f"{source}: dropped {dropped} of {n} surfels with NaN or inf values",
+                          stacklevel=2)
+            arrays = {k: (None if v is None else v[keep]) for k, v in arrays.items()}
+        if not keep.any():
+            raise DofsplatError(f"{source}: no valid surfels (all {n} rows had NaN or inf)")
+        return cls(**arrays, material=material or Material())
+
+    def subset(self, index) -> "Surfels":
+        """The surfels selected by a boolean mask or an index array."""
+        pick = lambda a: None if a is None else a[index]  # noqa: E731
+        return replace(self, positions=self.positions[index], normals=self.normals[index],
+                       radius=self.radius[index], colors=self.colors[index],
+                       opacity=self.opacity[index], tangent=pick(self.tangent),
+                       radius_v=pick(self.radius_v), weight=pick(self.weight))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (lo, hi) of the positions, world units."""
+        return self.positions.min(axis=0), self.positions.max(axis=0)
+
+
+def concatenate(parts: list[Surfels]) -> Surfels:
+    """Join several models into one (material of the first; weights default to 1)."""
+    if not parts:
+        raise DofsplatError("nothing to concatenate")
+    ell = any(p.is_elliptical for p in parts)
+    wgt = any(p.weight is not None for p in parts)
+
+    def cat(get):
+        return np.concatenate([get(p) for p in parts])
+
+    def frame(p):
+        if p.is_elliptical:
+            return p.tangent, p.radius_v
+        return tangent_frame(p.normals)[0], p.radius
+
+    return Surfels(
+        positions=cat(lambda p: p.positions), normals=cat(lambda p: p.normals),
+        radius=cat(lambda p: p.radius), colors=cat(lambda p: p.colors),
+        opacity=cat(lambda p: p.opacity),
+        tangent=cat(lambda p: frame(p)[0]) if ell else None,
+        radius_v=cat(lambda p: frame(p)[1]) if ell else None,
+        weight=cat(lambda p: p.weight if p.weight is not None
+                   else np.ones(len(p), np.float32)) if wgt else None,
+        material=parts[0].material)
+
+
+def tangent_frame(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (t_u, t_v) perpendicular to unit normals, (N, 3) each.
+
+    The same construction as the kernels' scalar version (splat/ewa.py): cross the normal
+    with the world axis it is least aligned with.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    helper = np.zeros_like(n)
+    ax = np.argmin(np.abs(n), axis=1)
+    helper[np.arange(len(n)), ax] = 1.0
+    tu = np.cross(n, helper)
+    tu /= np.linalg.norm(tu, axis=1)[:, None]
+    tv = np.cross(n, tu)
+    return tu.astype(np.float32), tv.astype(np.float32)
+
+
+def _rows(a, cols, name) -> int:
+    a = np.asarray(a)
+    if a.ndim != 2 or a.shape[1] != cols:
+        raise DofsplatError(f"{name} must have shape (N, {cols}), got {a.shape}")
+    if a.shape[0] == 0:
+        raise DofsplatError(f"{name} is empty: a model needs at least one surfel")
+    return a.shape[0]
+
+
+def _check_shape(a, shape, name):
+    if a.shape != shape:
+        raise DofsplatError(f"{name} must have shape {shape}, got {a.shape}")
+
+
+def _column(a, n, name) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if a.ndim == 0:
+        a = np.full(n, a, np.float32)
+    if a.shape != (n,):
+        raise DofsplatError(f"{name} must have shape ({n},), got {a.shape}")
+    return a
