@@ -109,7 +109,10 @@ class Surfels:
         bad = int(np.count_nonzero(lengths < 1e-12))
         if bad:
             raise DofsplatError(f"{bad} of {n} surfels have a zero-length normal")
-        self.normals /= lengths[:, None]
+        # rescale only rows that are not unit already: re-normalising a unit float32 vector
+        # can move it by an ulp, and a file's normals should survive a round trip exactly
+        off = np.abs(lengths - 1.0) > 1e-6
+        self.normals[off] /= lengths[off, None]
         bad = int(np.count_nonzero(self.radius <= 0))
         if self.radius_v is not None:
             bad = max(bad, int(np.count_nonzero(self.radius_v <= 0)))
@@ -117,13 +120,16 @@ class Surfels:
             raise DofsplatError(f"{bad} of {n} surfels have a radius <= 0")
         if self.tangent is not None:
             # project the tangent into the surfel's plane and normalise it
-            t = self.tangent - np.sum(self.tangent * self.normals, 1)[:, None] * self.normals
+            t64 = self.tangent.astype(np.float64)
+            t = t64 - np.sum(t64 * self.normals, 1)[:, None] * self.normals
             tl = np.linalg.norm(t, axis=1)
             bad = int(np.count_nonzero(tl < 1e-9))
             if bad:
                 raise DofsplatError(f"{bad} of {n} elliptical surfels have a tangent "
                                     "parallel to their normal")
-            self.tangent = (t / tl[:, None]).astype(np.float32)
+            # as for normals: leave tangents that are unit and in the plane already untouched
+            off = (np.abs(np.linalg.norm(t64, axis=1) - 1.0) > 1e-6) | (np.abs(tl - 1.0) > 1e-6)
+            self.tangent[off] = (t[off] / tl[off, None]).astype(np.float32)
         np.clip(self.colors, 0.0, None, out=self.colors)
         np.clip(self.opacity, 0.0, 1.0, out=self.opacity)
         if self.weight is not None and np.any(self.weight < 0):

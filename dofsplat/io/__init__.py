@@ -1,0 +1,87 @@
+"""Model and image I/O: one module per format, chosen by file extension.
+
+``LOADERS`` maps a lower-case extension to a function ``loader(path, **options) ->
+Surfels``; a new format registers itself by adding an entry (as trimesh's exchange modules
+do). :func:`load` picks the loader of the longest extension the file name ends with, so
+``.ply.gz`` wins over ``.gz``.
+
+Importing this package imports numpy only; each format imports its library (plyfile,
+Pillow, OpenEXR) when first used.
+"""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+from typing import Callable
+
+from ..errors import DofsplatError
+from ..surfels import Surfels
+from .colors import linear_to_srgb, srgb_to_linear
+from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
+                     read_image, write_depth, write_image)
+from .ply import read_surfel_ply, write_surfel_ply
+
+LOADERS: dict[str, Callable[..., Surfels]] = {
+    ".ply": read_surfel_ply,
+    ".ply.gz": read_surfel_ply,
+}
+
+SAVERS: dict[str, Callable[..., object]] = {
+    ".ply": write_surfel_ply,
+    ".ply.gz": write_surfel_ply,
+}
+
+__all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
+           "check_output_path", "linear_to_srgb", "load", "read_image", "read_surfel_ply",
+           "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
+
+
+def load(path, **options) -> Surfels:
+    """Load a surfel model, choosing the loader by the file's extension.
+
+    options are passed to the loader (for PLY: ``material``). Raises DofsplatError for a
+    missing file, an unsupported extension, an option the loader does not take, or
+    whatever the loader finds wrong with the file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DofsplatError(f"no such file: {path}")
+    if not path.is_file():
+        raise DofsplatError(f"not a file: {path}")
+    loader = LOADERS[_extension(path, LOADERS, "model")]
+    _check_options(loader, path, options)
+    return loader(path, **options)
+
+
+def save_surfels(path, surfels: Surfels, **options) -> Path:
+    """Save a surfel model; the extension picks the format (``.ply`` or ``.ply.gz``).
+
+    options are passed to the writer (for PLY: ``binary=True``). Atomic; returns the path.
+    """
+    path = Path(path)
+    saver = SAVERS[_extension(path, SAVERS, "model")]
+    _check_options(saver, path, options, skip=2)
+    return saver(path, surfels, **options)
+
+
+def _extension(path: Path, registry: dict, what: str) -> str:
+    """The longest registered extension that the file name ends with (any case)."""
+    name = path.name.lower()
+    for ext in sorted(registry, key=len, reverse=True):
+        if name.endswith(ext):
+            return ext
+    raise DofsplatError(f"{path}: unsupported {what} format; supported extensions: "
+                        f"{', '.join(sorted(registry))}")
+
+
+def _check_options(fn, path: Path, options: dict, skip: int = 1) -> None:
+    # a typo in an option should be a clear error, not a TypeError from inside the loader
+    params = list(inspect.signature(fn).parameters.values())[skip:]
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return
+    unknown = sorted(set(options) - {p.name for p in params})
+    if unknown:
+        known = ", ".join(p.name for p in params) or "none"
+        raise DofsplatError(f"{path}: unknown option(s) {', '.join(unknown)} for this format "
+                            f"(options: {known})")

@@ -1,0 +1,36 @@
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import dofsplat as ds
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _compiled():
+    """Compile (or load from cache) the kernels once per session."""
+    ds.render.__module__  # noqa: B018 - keep the import
+    from dofsplat.render import warm_up
+    warm_up()
+
+
+def grid_surfels(n=32, spacing=1.0 / 32, z=0.0, color=(0.6, 0.3, 0.2), opacity=1.0,
+                 center=(0.0, 0.0)):
+    """An n x n square grid of disks in the plane z, facing +z, radius = spacing."""
+    g = (np.arange(n) - (n - 1) / 2) * spacing
+    x, y = np.meshgrid(g + center[0], g + center[1])
+    pos = np.stack([x.ravel(), y.ravel(), np.full(n * n, z)], axis=1)
+    return ds.Surfels(positions=pos, normals=np.tile([0.0, 0.0, 1.0], (n * n, 1)),
+                      radius=np.full(n * n, spacing), colors=np.tile(color, (n * n, 1)),
+                      opacity=np.full(n * n, opacity))
+
+
+def front_camera(width=64, height=64, distance=2.0, fov=40.0):
+    return ds.Camera(eye=(0.0, 0.0, distance), target=(0.0, 0.0, 0.0), width=width,
+                     height=height, fov_y=fov, near=0.01)
+
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")

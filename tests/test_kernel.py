@@ -1,0 +1,125 @@
+"""The resampling kernel: DOF variance, truncation and normalisation, circumellipse."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, optimize
+
+import dofsplat as ds
+from dofsplat.slow import circumellipse_appendix, circumellipse_eig
+from dofsplat.splat import ewa
+
+from conftest import front_camera
+
+
+def test_dof_factor_is_the_l2_best_gaussian_for_a_uniform_disc():
+    """Minimise ||uniform disc - circular Gaussian||_2 over the variance: a = C_r^2/(2 ln 4)."""
+    Cr = 1.0
+
+    def l2_distance_sq(a):
+        gauss = lambda r: math.exp(-0.5 * r * r / a) / (2 * math.pi * a)  # noqa: E731
+        inside, _ = integrate.quad(lambda r: (1 / (math.pi * Cr ** 2) - gauss(r)) ** 2 * 2 * math.pi * r, 0, Cr)
+        outside, _ = integrate.quad(lambda r: gauss(r) ** 2 * 2 * math.pi * r, Cr, np.inf)
+        return inside + outside
+
+    res = optimize.minimize_scalar(l2_distance_sq, bounds=(0.05, 2.0), method="bounded",
+                                   options={"xatol": 1e-10})
+    assert res.x == pytest.approx(1 / (2 * math.log(4)), rel=1e-5)
+    assert ewa.DOF_VARIANCE_FACTOR == pytest.approx(1 / (2 * math.log(4)), rel=1e-15)
+
+
+def single_splat(normal=(0, 0, 1), radius=0.02, tangent=None, radius_v=None, cutoff=2.5,
+                 lens=None, exact=True, cam=None, pos=(0.0013, -0.0021, 0.0)):
+    s = ds.Surfels(positions=[pos], normals=[normal], radius=[radius], colors=[[1, 1, 1]],
+                   tangent=None if tangent is None else [tangent],
+                   radius_v=None if radius_v is None else [radius_v])
+    cam = cam or front_camera(128, 128)
+    settings = ds.RenderSettings(cutoff=cutoff, shading="none", exact_normalization=exact)
+    return s, cam, ds.render(s, cam, lens, settings)
+
+
+def expected_area_px(s, cam):
+    """|det J| x r_u r_v: the surfel's area in pixels, from the twin's Jacobian."""
+    from dofsplat.slow import project_reference
+    from dofsplat.splat.project import AMP, C11, C12, C22
+    st = ds.RenderSettings(shading="none", exact_normalization=False, cutoff=30)
+    splats, _, vis = project_reference(s, s.colors, cam, None, st)
+    # analytic amplitude at c = 30 is area_px / (2 pi sqrt|W|): recover area_px
+    Wdet = 1.0 / (splats[0, C11] * splats[0, C22] - splats[0, C12] ** 2)
+    return splats[0, AMP] * 2 * math.pi * math.sqrt(Wdet) * (1 - math.exp(-30))
+
+
+@pytest.mark.parametrize("case", [
+    dict(normal=(0, 0, 1), radius=0.02),  # round, a few pixels
+    dict(normal=(0, 0, 1), radius=0.004),  # round, prefilter-dominated
+    dict(normal=(0.0, 0.97, 0.243), radius=0.03),  # strongly elliptical: grazing view
+    dict(normal=(0, 0, 1), radius=0.05, tangent=(1, 1, 0), radius_v=0.006),  # elliptical surfel
+])
+def test_single_truncated_kernel_sums_to_its_area(case):
+    """One kernel, truncated at c = 2.5, deposits exactly its area in pixels (within 1e-3)."""
+    s, cam, res = single_splat(**case)
+    area_px = expected_area_px(s, cam)
+    assert res.weight.sum() == pytest.approx(area_px, rel=1e-3)
+
+
+def test_analytic_compensation_is_close_but_not_exact():
+    """The paper's 1/(1 - e^-c): right on average, a few % off for small kernels."""
+    s, cam, res = single_splat(radius=0.004, exact=False)
+    area_px = expected_area_px(s, cam)
+    assert res.weight.sum() == pytest.approx(area_px, rel=0.05)
+
+
+def test_out_of_focus_blob_second_moment():
+    """A tiny surfel far out of focus: per-axis variance 1 + C_r^2/(2 ln 4) + J V^r J^T.
+
+    Rendered with c = 8, whose truncation shrinks the moment by 1 - c e^-c/(1 - e^-c) = 0.9973.
+    """
+    cam = front_camera(160, 160, distance=2.0)
+    lens = ds.ThinLens(focus_distance=1.0, aperture=0.3)
+    s, cam, res = single_splat(radius=1e-4, cutoff=8.0, lens=lens, cam=cam, pos=(0, 0, 0))
+    coc = lens.coc_radius_px(2.0, cam)
+    assert coc > 10
+    w = res.weight.astype(np.float64)
+    ys, xs = np.mgrid[0:160, 0:160] + 0.5
+    m = w.sum()
+    mx, my = (w * xs).sum() / m, (w * ys).sum() / m
+    vx = (w * (xs - mx) ** 2).sum() / m
+    vy = (w * (ys - my) ** 2).sum() / m
+    c = 8.0
+    shrink = 1 - c * math.exp(-c) / (1 - math.exp(-c))
+    ax = cam.pixels_per_unit_at_unit_depth
+    jvj = (ax / 2.0 * 0.5e-4) ** 2
+    expected = (1 + coc ** 2 / (2 * math.log(4)) + jvj) * shrink
+    assert vx == pytest.approx(expected, rel=0.03)
+    assert vy == pytest.approx(expected, rel=0.03)
+
+
+def _random_spd(rng):
+    a = rng.normal(size=(2, 2)) * rng.uniform(0.1, 10)
+    return a @ a.T + 1e-3 * np.eye(2)
+
+
+def test_circumellipse_contains_both_and_matches_appendix():
+    rng = np.random.default_rng(3)
+    for _ in range(500):
+        M = _random_spd(rng)
+        r = rng.uniform(0.01, 20)
+        out = np.array(ewa.circumellipse(M[0, 0], M[0, 1], M[1, 1], r))
+        D = np.array([[out[0], out[1]], [out[1], out[2]]])
+        # contains both: D - M and D - r I are positive semi-definite
+        assert np.linalg.eigvalsh(D - M).min() > -1e-9 * np.abs(D).max()
+        assert np.linalg.eigvalsh(D - r * np.eye(2)).min() > -1e-9 * np.abs(D).max()
+        np.testing.assert_allclose(D, circumellipse_eig(M, r), rtol=1e-9, atol=1e-9)
+        a2, b2, c2 = circumellipse_appendix(M[0, 0], 2 * M[0, 1], M[1, 1], r)
+        np.testing.assert_allclose([a2, b2 / 2, c2], out, rtol=1e-9, atol=1e-9 * abs(out).max())
+
+
+def test_circumellipse_limits():
+    M = np.array([[2.0, 0.5], [0.5, 1.0]])
+    big = 10.0  # circle larger in every direction
+    np.testing.assert_allclose(ewa.circumellipse(2.0, 0.5, 1.0, big), (big, 0.0, big), atol=1e-12)
+    small = 0.1  # ellipse larger in every direction
+    np.testing.assert_allclose(ewa.circumellipse(2.0, 0.5, 1.0, small), (2.0, 0.5, 1.0), atol=1e-12)
+    np.testing.assert_allclose(ewa.circumellipse(3.0, 0.0, 3.0, 1.0), (3.0, 0.0, 3.0))
+    assert np.linalg.eigvalsh(M).min() > small
