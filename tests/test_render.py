@@ -1,0 +1,184 @@
+"""Whole-frame rendering: coverage, partial occlusion, transparency, parity with the twins."""
+
+import numba
+import numpy as np
+import pytest
+
+import dofsplat as ds
+from dofsplat.render import project, shade_surfels
+from dofsplat.slow import project_reference, rasterize_reference, render_reference
+from dofsplat.surfels import concatenate
+
+from conftest import front_camera, grid_surfels
+
+UNLIT = ds.RenderSettings(shading="none")
+
+
+def interior(a, margin):
+    return a[margin:-margin, margin:-margin]
+
+
+def test_grid_in_focus_has_unit_coverage_and_exact_colour():
+    """radius = spacing: interior coverage 1 +- 0.1 (Section 6.3's target) and the exact colour."""
+    color = np.array([0.6, 0.3, 0.2])
+    s = grid_surfels(n=48, spacing=1.0 / 48, color=color)
+    cam = front_camera(96, 96, distance=2.5)
+    res = ds.render(s, cam, None, UNLIT)
+    # the grid spans pixels 21.5 to 74.5: keep well inside it
+    cov = interior(res.alpha, 28)
+    assert cov.min() > 0.9 and cov.max() <= 1.0
+    w = interior(res.weight, 28)
+    assert np.all(np.abs(w - 1) < 0.1)
+    # over a black background the un-premultiplied colour is the surfel colour exactly
+    rgb = interior(res.rgb, 28) / cov[..., None]
+    np.testing.assert_allclose(rgb, np.broadcast_to(color, rgb.shape), rtol=1e-5)
+    # and outside the model: nothing
+    assert res.alpha[:4].max() == 0 and np.isinf(res.depth[:4]).all()
+
+
+def checker_plane(n=64, spacing=1.0 / 32, z=0.0):
+    s = grid_surfels(n=n, spacing=spacing, z=z)
+    ij = np.indices((n, n)).reshape(2, -1)
+    check = ((ij[0] // 4 + ij[1] // 4) % 2).astype(np.float32)
+    s.colors[:] = np.stack([check, 1 - check, 0.2 * np.ones_like(check)], axis=1)
+    return s
+
+
+def test_blurred_occluder_lets_the_sharp_plane_show_through_its_rim():
+    """Partial occlusion: at the blurred rim the far plane is seen, unblurred, behind the occluder.
+
+    Each pixel must be the "over" of the occluder (rendered alone) onto the plane (alone):
+    the A-buffer keeps the two surfaces apart, so nothing of one leaks into the other.
+    """
+    cam = front_camera(96, 96, distance=2.0)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.3)  # plane at z=0 in focus
+    plane = checker_plane()
+    occluder = grid_surfels(n=12, spacing=1.0 / 48, z=1.0, color=(0.1, 0.1, 0.9))
+    both = ds.render(concatenate([plane, occluder]), cam, lens, UNLIT)
+    plane_only = ds.render(plane, cam, lens, UNLIT)
+    occ_only = ds.render(occluder, cam, lens, UNLIT)
+    assert lens.coc_radius_px(1.0, cam) > 8  # the occluder really is blurred
+    a = occ_only.alpha[..., None]
+    expected = occ_only.rgb + (1 - a) * plane_only.rgb  # premultiplied occluder over plane
+    np.testing.assert_allclose(both.rgb, expected, atol=2e-3)
+    rim = (occ_only.alpha > 0.2) & (occ_only.alpha < 0.8)
+    assert rim.sum() > 100
+    # in the rim the plane's checker (red/green) is clearly visible through the occluder
+    assert (both.rgb[rim][:, 0] - both.rgb[rim][:, 1]).std() > 0.1
+
+
+def test_sharp_object_over_blurred_plane_keeps_its_colour():
+    """No intensity leakage: the blurred background never bleeds into a sharp foreground."""
+    cam = front_camera(96, 96, distance=2.0)
+    lens = ds.ThinLens(focus_distance=1.0, aperture=0.3)  # focus on the near square
+    plane = checker_plane()
+    color = np.array([0.1, 0.2, 0.9])
+    near = grid_surfels(n=24, spacing=1.0 / 48, z=1.0, color=color)
+    res = ds.render(concatenate([plane, near]), cam, lens, UNLIT)
+    assert lens.coc_radius_px(2.0, cam) > 8  # the plane really is blurred
+    inner = ds.render(near, cam, lens, UNLIT).alpha >= 1.0  # full coverage of the near square
+    assert inner.sum() > 400
+    np.testing.assert_allclose(res.rgb[inner], np.broadcast_to(color, (inner.sum(), 3)), atol=1e-6)
+
+
+def test_half_transparent_plane_over_opaque_plane_is_over():
+    cam = front_camera(64, 64, distance=2.0)
+    front = grid_surfels(n=40, spacing=1.0 / 40, z=0.5, color=(0.9, 0.1, 0.1), opacity=0.5)
+    back = grid_surfels(n=64, spacing=1.0 / 32, z=0.0, color=(0.1, 0.1, 0.9))
+    bg = (0.2, 0.2, 0.2)
+    settings = ds.RenderSettings(shading="none", background=bg)
+    both = ds.render(concatenate([front, back]), cam, None, settings)
+    f = ds.render(front, cam, None, ds.RenderSettings(shading="none"))  # over black: premultiplied
+    b = ds.render(back, cam, None, settings)
+    expected = f.rgb + (1 - f.alpha[..., None]) * b.rgb
+    np.testing.assert_allclose(both.rgb, expected, atol=1e-5)
+    centre = interior(f.alpha, 24)
+    assert np.all(np.abs(centre - 0.5) < 0.05)  # coverage 1 +- 0.1 times opacity 0.5
+    c = both.rgb[32, 32]
+    np.testing.assert_allclose(c, 0.5 * np.array([0.9, 0.1, 0.1]) + 0.5 * np.array([0.1, 0.1, 0.9]),
+                               atol=0.05)
+
+
+def random_scene(seed, n=250, elliptical=False):
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(-1, 1, (n, 3)) * [1.0, 0.8, 0.6]
+    nrm = rng.normal(size=(n, 3))
+    nrm[:, 2] = np.abs(nrm[:, 2]) + 0.2
+    kw = {}
+    if elliptical:
+        kw = dict(tangent=rng.normal(size=(n, 3)), radius_v=rng.uniform(0.01, 0.1, n))
+    return ds.Surfels(positions=pos, normals=nrm, radius=rng.uniform(0.02, 0.15, n),
+                      colors=rng.uniform(0, 1, (n, 3)), opacity=rng.uniform(0.2, 1, n), **kw)
+
+
+@pytest.mark.parametrize("seed, elliptical, aperture, cull, shading", [
+    (0, False, 0.0, True, "phong"),
+    (1, False, 0.4, True, "none"),
+    (2, True, 0.25, False, "phong"),
+    (3, True, 0.0, False, "none"),
+])
+def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shading):
+    """Projection, rasterisation and the whole frame against the slow twins, within 1e-4."""
+    s = random_scene(seed, elliptical=elliptical)
+    cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=56, height=40, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.6, aperture=aperture) if aperture else None
+    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), cull_backfaces=cull, shading=shading)
+    rgb = shade_surfels(s, cam, st)
+    fast = project(s, rgb, cam, lens, st)
+    slow = project_reference(s, rgb, cam, lens, st)
+    np.testing.assert_array_equal(fast[2], slow[2])
+    vis = fast[2]
+    assert vis.sum() > 50
+    np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(fast[1][vis], slow[1][vis])
+    # rasteriser on identical input
+    res = ds.render(s, cam, lens, st)
+    img, depth, weight, frags = rasterize_reference(*fast, cam.width, cam.height, st.cutoff, st.background)
+    np.testing.assert_allclose(res.image, img, atol=1e-4)
+    np.testing.assert_allclose(res.weight, weight, atol=1e-4)
+    np.testing.assert_array_equal(np.isinf(res.depth), np.isinf(depth))
+    fin = np.isfinite(depth)
+    np.testing.assert_allclose(res.depth[fin], depth[fin], rtol=1e-4)
+    assert res.stats["fragments"] == frags
+    # and the all-twin pipeline
+    img2 = render_reference(s, cam, lens, st)[0]
+    np.testing.assert_allclose(res.image, img2, atol=1e-4)
+
+
+def test_image_does_not_depend_on_thread_count_or_banding():
+    s = random_scene(5, n=2000)
+    cam = ds.Camera(eye=(0, 0, 4), target=(0, 0, 0), width=96, height=80, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = ds.render(s, cam, lens)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = ds.render(s, cam, lens)
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_array_equal(one.image, many.image)
+    banded = ds.render(s, cam, lens, ds.RenderSettings(max_tile_pairs=200))
+    assert banded.stats["bands"] > 2
+    np.testing.assert_array_equal(banded.image, many.image)
+    assert banded.stats["fragments"] == many.stats["fragments"]
+
+
+def test_focus_distance_at_reads_the_visible_surface():
+    s = grid_surfels(n=32, spacing=1.0 / 32, z=0.25)
+    cam = front_camera(64, 64, distance=2.0)
+    assert ds.focus_distance_at(s, cam, 32, 32) == pytest.approx(1.75, rel=1e-4)
+    with pytest.raises(ds.DofsplatError, match="no surface"):
+        ds.focus_distance_at(s, cam, 1, 1)
+    with pytest.raises(ds.DofsplatError, match="outside"):
+        ds.focus_distance_at(s, cam, 64, 3)
+
+
+def test_culling_behind_camera_and_back_faces():
+    s = ds.Surfels(positions=[[0, 0, 0], [0, 0, 3], [0.2, 0, 0]],
+                   normals=[[0, 0, 1], [0, 0, 1], [0, 0, -1]], radius=[0.05] * 3,
+                   colors=[[1, 1, 1]] * 3)
+    cam = front_camera(32, 32, distance=2.0)
+    assert ds.render(s, cam).stats["splats_rendered"] == 1
+    two_sided = ds.render(s, cam, None, ds.RenderSettings(cull_backfaces=False))
+    assert two_sided.stats["splats_rendered"] == 2
