@@ -55,7 +55,8 @@ class Camera:
             if v.shape != (3,) or not np.all(np.isfinite(v)):
                 raise DofsplatError(f"camera {name} must be three finite numbers, got {getattr(self, name)}")
             object.__setattr__(self, name, tuple(float(x) for x in v))
-        if not (isinstance(self.width, (int, np.integer)) and isinstance(self.height, (int, np.integer))):
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                   for v in (self.width, self.height)):
             raise DofsplatError("image width and height must be integers")
         if self.width <= 0 or self.height <= 0:
             raise DofsplatError(f"image size must be positive, got {self.width}x{self.height}")

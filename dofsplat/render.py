@@ -16,7 +16,7 @@ import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
-from .shading import HEADLIGHT, Light, shade
+from .shading import HEADLIGHT, Light
 from .surfels import Surfels
 
 
@@ -126,10 +126,12 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
 
 def shade_surfels(surfels: Surfels, camera: Camera, settings: RenderSettings) -> np.ndarray:
     """Per-splat shading before splatting (Section 6.5): (N, 3) float32 linear RGB."""
+    from .splat.shade import shade_fast
+
     if settings.shading == "none":
         return surfels.colors
-    return shade(surfels.positions, surfels.normals, surfels.colors, surfels.material, camera,
-                 settings.lights, two_sided=not settings.cull_backfaces)
+    return shade_fast(surfels.positions, surfels.normals, surfels.colors, surfels.material,
+                      camera, settings.lights, two_sided=not settings.cull_backfaces)
 
 
 def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float]:

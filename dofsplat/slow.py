@@ -60,7 +60,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     """numpy twin of ``render.project``: (splats (N, 14), bbox (N, 4), visible (N,))."""
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
                                 EXACT_NORMALISATION_MAX_AREA, GREEN, MX, MY, N_FIELDS, RED,
-                                ZHI, ZLO)
+                                X0, X1, ZHI, ZLO)
 
     n = len(surfels)
     c = float(settings.cutoff)
@@ -129,6 +129,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         splats[k, [RED, GREEN, BLUE]] = rgb[k]
         splats[k, ALPHA] = surfels.opacity[k]
         splats[k, COC] = coc_r
+        splats[k, [X0, X1]] = x0, x1
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
     return splats, bbox, visible

@@ -182,3 +182,19 @@ def test_culling_behind_camera_and_back_faces():
     assert ds.render(s, cam).stats["splats_rendered"] == 1
     two_sided = ds.render(s, cam, None, ds.RenderSettings(cull_backfaces=False))
     assert two_sided.stats["splats_rendered"] == 2
+
+
+def test_shading_kernel_equals_numpy_twin():
+    from dofsplat.shading import shade
+    from dofsplat.splat.shade import shade_fast
+    s = random_scene(9, n=500)
+    cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0))
+    lights = (ds.HEADLIGHT, ds.Light("point", (1.0, 2.0, 3.0), (0.5, 0.4, 0.3), in_camera_space=False),
+              ds.Light("directional", (1.0, -1.0, -1.0), (0.2, 0.2, 0.6), in_camera_space=False),
+              ds.Light("point", (0.0, 1.0, 0.0), (0.3, 0.3, 0.3), in_camera_space=True))
+    mat = ds.Material(ambient=0.1, diffuse=0.7, specular=0.6, shininess=20)
+    for two_sided in (False, True):
+        a = shade(s.positions, s.normals, s.colors, mat, cam, lights, two_sided)
+        b = shade_fast(s.positions, s.normals, s.colors, mat, cam, lights, two_sided)
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
+        assert a.max() > a.min() + 0.5  # the lights do something

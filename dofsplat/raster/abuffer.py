@@ -22,9 +22,9 @@ import math
 import numba
 import numpy as np
 
-from ..splat.ewa import exponent, row_pixel_range
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, RED,
-                             ZHI, ZLO)
+from ..splat.ewa import row_pixel_range, row_start
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, RED, X0,
+                             X1, ZHI, ZLO)
 
 TILE = 16
 MAX_SURFACES = 8
@@ -143,15 +143,14 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
 
 
 @numba.njit(cache=True, nogil=True)
-def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out):
+def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, depth):
     """Composite pixel p's surfaces front to back over the background.
 
     out: (7,) receives r, g, b, alpha, depth of the surface that contributes most
-    (inf if none), accumulated weight of the nearest surface, number of surfaces.
+    (inf if none), accumulated weight of the nearest surface, number of surfaces;
+    order, depth: (MAX_SURFACES,) scratch space.
     """
     n = cnt[p]
-    order = np.empty(n, np.int64)
-    depth = np.empty(n, np.float64)
     for i in range(n):  # insertion sort by mean depth, ties by slot
         d = acc[p, i, S_WD] / acc[p, i, S_W] if acc[p, i, S_W] > 0 else 0.5 * (acc[p, i, S_ZLO] + acc[p, i, S_ZHI])
         m = i
@@ -214,21 +213,32 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             amp = splats[k, AMP]
             r, g, b, a = splats[k, RED], splats[k, GREEN], splats[k, BLUE], splats[k, ALPHA]
             d, zlo, zhi = splats[k, DEPTH], splats[k, ZLO], splats[k, ZHI]
+            x0, x1 = int(splats[k, X0]), int(splats[k, X1])
+            step2 = math.exp(-c11)
             for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
-                j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff)
-                dy = i + 0.5 - my
-                for j in range(max(j0, px0), min(j1, px1) + 1):
-                    q = exponent(j + 0.5 - mx, dy, c11, c12, c22)
+                j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1)
+                ja, jb = max(j0, px0), min(j1, px1)
+                if ja > jb:
+                    continue
+                # exponent and kernel value by forward differences along the row (ewa.row_start)
+                q, dq, e, f = row_start(ja, i, mx, my, c11, c12, c22)
+                p = (i - py0) * TILE + (ja - px0)
+                for _ in range(ja, jb + 1):
                     if q < cutoff:
-                        p = (i - py0) * TILE + (j - px0)
-                        overflows += insert_fragment(acc, cnt, p, amp * math.exp(-q),
-                                                     r, g, b, a, d, zlo, zhi)
+                        overflows += insert_fragment(acc, cnt, p, amp * e, r, g, b, a, d, zlo, zhi)
                         frags += 1
+                    q += dq
+                    dq += c11
+                    e *= f
+                    f *= step2
+                    p += 1
         res = np.empty(7, np.float64)
+        order = np.empty(MAX_SURFACES, np.int64)
+        depth_scratch = np.empty(MAX_SURFACES, np.float64)
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)
-                resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res)
+                resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res, order, depth_scratch)
                 image[i, j, 0] = res[0]
                 image[i, j, 1] = res[1]
                 image[i, j, 2] = res[2]

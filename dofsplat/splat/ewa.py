@@ -203,13 +203,20 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
 COORD_LIMIT = 1.0e9  # clamp screen coordinates before converting them to int
 
 
+# rows of a bbox at most this wide are scanned whole: cheaper than solving for the span
+NARROW_BBOX = 8
+
+
 @shared
-def row_pixel_range(i, mx, my, c11, c12, c22, cutoff):
+def row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1):
     """Inclusive pixel columns (j0, j1) of row i that may lie inside the truncated kernel.
 
-    One pixel wider than the analytic span on each side: the per-pixel test
-    ``exponent < cutoff`` decides, identically in every implementation.
+    x0, x1: the kernel's unclipped bbox columns. Narrow kernels scan the whole bbox row;
+    wider ones solve for the row's span, one pixel wider on each side. Either way the
+    per-pixel test ``exponent < cutoff`` decides, identically in every implementation.
     """
+    if x1 - x0 < NARROW_BBOX:
+        return x0, x1
     lo, hi = row_span(i + 0.5 - my, c11, c12, c22, cutoff)
     if lo > hi:
         return 1, 0
@@ -231,14 +238,35 @@ def kernel_bbox(mx, my, w11, w22, cutoff):
 
 
 @shared
-def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, y0, y1):
+def row_start(j, i, mx, my, c11, c12, c22):
+    """Exponent q, its step dq to pixel j + 1, and exp(-q), exp(-dq) at pixel (i, j).
+
+    Along a row the exponent is quadratic in j, so q(j+1) = q(j) + dq(j) and
+    dq(j+1) = dq(j) + c11: the kernel then needs two multiplications per pixel instead of
+    an exp (forward differencing; ``exp(-c11)`` is the step's own factor).
+    """
+    dx = j + 0.5 - mx
+    dy = i + 0.5 - my
+    q = exponent(dx, dy, c11, c12, c22)
+    dq = c11 * dx + 0.5 * c11 + c12 * dy
+    return q, dq, math.exp(-q), math.exp(-dq)
+
+
+@shared
+def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1):
     """Sum of exp(-exponent) over all pixel centres inside the truncated kernel (unclipped)."""
     total = 0.0
+    step2 = math.exp(-c11)
     for i in range(y0, y1 + 1):
-        j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff)
-        dy = i + 0.5 - my
-        for j in range(j0, j1 + 1):
-            q = exponent(j + 0.5 - mx, dy, c11, c12, c22)
+        j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1)
+        if j0 > j1:
+            continue
+        q, dq, e, f = row_start(j0, i, mx, my, c11, c12, c22)
+        for _ in range(j0, j1 + 1):
             if q < cutoff:
-                total += math.exp(-q)
+                total += e
+            q += dq
+            dq += c11
+            e *= f
+            f *= step2
     return total

@@ -19,10 +19,10 @@ import numpy as np
 
 from .ewa import kernel_bbox, kernel_pixel_sum, project_surfel
 
-MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC = range(14)
-N_FIELDS = 14
+MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC, X0, X1 = range(16)
+N_FIELDS = 16
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
-                "red", "green", "blue", "alpha", "coc_radius_px")
+                "red", "green", "blue", "alpha", "coc_radius_px", "x0", "x1")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -70,7 +70,7 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, vq, v
         c11, c12, c22 = w22 / det, -w12 / det, w11 / det
         norm = 0.0
         if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
-            norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, y0, y1)
+            norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1)
         if norm > 0.0:
             amp = area_px / norm
         else:
@@ -89,6 +89,8 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, vq, v
         out[k, BLUE] = rgb[k, 2]
         out[k, ALPHA] = alpha[k]
         out[k, COC] = coc_r
+        out[k, X0] = x0  # unclipped bbox columns (ewa.row_pixel_range)
+        out[k, X1] = x1
         bbox[k, 0] = cx0
         bbox[k, 1] = cx1
         bbox[k, 2] = cy0

@@ -1,0 +1,516 @@
+"""The ``dofsplat`` command line: render a surfel model, or the built-in demo scene.
+
+    dofsplat render MODEL.ply -o OUT.png [camera, lens and rendering options]
+    dofsplat demo [-o demo.png] [the same options; the scene supplies the defaults]
+
+A command runs in this order, so that a user mistake costs no rendering time and leaves no
+file behind: parse and check the arguments, check the output paths, load the model (or
+build the demo scene), set up camera, lens and settings, autofocus (``--focus-at``),
+render, write the outputs (atomically, by :mod:`dofsplat.io`), print one summary line.
+
+:func:`main` returns the exit status: 0 on success, 2 for a user mistake (one line
+``dofsplat: error: ...`` on stderr), 130 on Ctrl-C. Anything else is a bug and keeps its
+traceback. numpy, numba and the renderer are imported only when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+import warnings
+from pathlib import Path
+
+from .errors import DofsplatError
+
+EXIT_OK = 0
+EXIT_USAGE = 2  # argparse's status for a usage error; every user mistake gets it
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+
+DEFAULT_SIZE = {"render": (512, 512), "demo": (800, 600)}  # pixels
+DEFAULT_FOV_DEG = 40.0  # vertical field of view for ``render``
+DEFAULT_CUTOFF = 2.5  # the paper's c
+APERTURE_PER_HALF_DIAGONAL = 0.1  # ``render``'s default lens diameter, x bbox half diagonal
+
+_EPILOG = """\
+units:
+  Lengths (--eye, --target, --focus, --aperture, --focal-length, --frustum) are in world
+  units, the units of the model's coordinates. Image sizes and positions (--size,
+  --focus-at) are in pixels, (0, 0) being the top-left corner of the image. Angles are in
+  degrees. Colours are display (sRGB) values in 0..1.
+
+examples:
+  dofsplat demo
+  dofsplat demo --size 1280x720 --aperture 0.3 -o wide.png
+  dofsplat render scan.ply -o scan.png --focus-at 256 300
+  dofsplat render scan.ply -o scan.exr --focal-length 0.05 --f-number 1.4 --focus 2.5
+  dofsplat render scan.ply -o scan.png --depth scan-depth.npy --stats scan.json
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0, 2 for a user mistake, 130)."""
+    parser = build_parser()
+    try:
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as e:  # --help and --version exit through here, status 0
+            return e.code if isinstance(e.code, int) else EXIT_OK
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.run(args)
+    except DofsplatError as e:
+        _print_error(str(e))
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+
+
+# -- the commands ------------------------------------------------------------------------
+
+
+def run_render(args) -> int:
+    """``dofsplat render``: load a model, frame it, render it, write the outputs."""
+    from .io import load
+
+    _check_arguments(args)
+    outputs = _check_outputs(args)
+    surfels = load(args.input)
+    lo, hi = surfels.bounds()
+    half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
+    width, height = args.size or DEFAULT_SIZE["render"]
+    base = _framing_camera(args, lo, hi, width, height)
+    camera = _camera(args, base)
+    default_focus = math.dist(camera.eye, camera.target)
+    return _render_and_write(args, outputs, surfels, camera, default_focus,
+                             default_aperture=APERTURE_PER_HALF_DIAGONAL * half_diagonal)
+
+
+def run_demo(args) -> int:
+    """``dofsplat demo``: the built-in scene (a textured plane and three spheres)."""
+    from .demo import demo_scene
+
+    _check_arguments(args)
+    outputs = _check_outputs(args)
+    width, height = args.size or DEFAULT_SIZE["demo"]
+    surfels, base, scene_lens = demo_scene(width, height)
+    camera = _camera(args, base)
+    # The scene focuses on its middle sphere; a camera moved by the user focuses on its target.
+    moved = args.eye is not None or args.target is not None
+    default_focus = math.dist(camera.eye, camera.target) if moved else scene_lens.focus_distance
+    return _render_and_write(args, outputs, surfels, camera, default_focus,
+                             default_aperture=scene_lens.diameter)
+
+
+def _render_and_write(args, outputs, surfels, camera, default_focus: float,
+                      default_aperture: float) -> int:
+    """The part both commands share: lens, settings, autofocus, render, outputs."""
+    from .io import write_depth, write_image
+    from .render import focus_distance_at, render
+
+    settings = _settings(args)
+    lens, focus_source = None, None
+    if settings.dof:
+        if args.focus is not None:
+            focus, focus_source = args.focus, "--focus"
+        elif args.focus_at is not None:
+            focus = focus_distance_at(surfels, camera, *args.focus_at, settings=settings)
+            focus_source = "--focus-at"
+        else:
+            focus, focus_source = default_focus, "default"
+        lens = _lens(args, focus, default_aperture)
+
+    result = render(surfels, camera, lens, settings)
+
+    write_image(outputs["image"], result.image, depth=result.depth)
+    if "depth" in outputs:
+        write_depth(outputs["depth"], result.depth)
+    if "stats" in outputs:
+        _write_stats(outputs["stats"], args, outputs, result, camera, lens, focus_source,
+                     settings)
+    if not args.quiet:
+        print(_summary(list(outputs.values()), result.stats), file=sys.stderr)
+    return EXIT_OK
+
+
+# -- camera, lens, settings --------------------------------------------------------------
+
+
+def _framing_camera(args, lo, hi, width: int, height: int):
+    """``render``'s default camera: on the +z side of the model, its bounding box in view."""
+    from .camera import Camera
+
+    fov = args.fov or DEFAULT_FOV_DEG
+    if args.frustum is not None:
+        left, right, bottom, top, near = args.frustum
+        fov = math.degrees(2.0 * math.atan((top - bottom) / (2.0 * near)))
+    return Camera.framing(lo, hi, width, height, fov, up=args.up or (0.0, 1.0, 0.0))
+
+
+def _camera(args, base):
+    """``base`` (the framing or the scene's camera) with the user's options applied."""
+    from .camera import Camera
+
+    return Camera(eye=args.eye or base.eye, target=args.target or base.target,
+                  up=args.up or base.up, width=base.width, height=base.height,
+                  fov_y=args.fov or base.fov_y or DEFAULT_FOV_DEG,
+                  frustum=args.frustum, near=base.near)
+
+
+def _lens(args, focus: float, default_aperture: float):
+    """The thin lens from --aperture, or --focal-length with --f-number, or the default."""
+    from .camera import ThinLens
+
+    if args.f_number is not None:
+        return ThinLens(focus_distance=focus, focal_length=args.focal_length,
+                        f_number=args.f_number)
+    aperture = args.aperture if args.aperture is not None else default_aperture
+    return ThinLens(focus_distance=focus, aperture=aperture, focal_length=args.focal_length)
+
+
+def _settings(args):
+    from .io import srgb_to_linear
+    from .render import RenderSettings
+
+    background = (0.0, 0.0, 0.0)
+    if args.background is not None:
+        background = tuple(float(c) for c in srgb_to_linear(args.background))
+    return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof, shading=args.shading,
+                          background=background, cull_backfaces=not args.no_cull)
+
+
+def _check_arguments(args) -> None:
+    """Mistakes in combinations of options, found before any loading or rendering."""
+    if args.f_number is not None and args.focal_length is None:
+        raise DofsplatError("--f-number needs --focal-length (the lens diameter is F / n)")
+    if (args.focal_length is not None and args.f_number is None and args.aperture is None
+            and not args.no_dof):
+        raise DofsplatError("--focal-length needs --f-number (or give the lens diameter "
+                            "with --aperture)")
+    if (args.focus is not None and args.focal_length is not None
+            and args.focus <= args.focal_length):
+        raise DofsplatError(f"the focus distance {args.focus:g} must exceed the focal length "
+                            f"{args.focal_length:g} (a lens cannot focus nearer than F)")
+    if args.frustum is not None:
+        left, right, bottom, top, near = args.frustum
+        if not (left < right and bottom < top and near > 0):
+            raise DofsplatError(f"--frustum needs L < R, B < T and N > 0, got "
+                                f"{' '.join(f'{v:g}' for v in args.frustum)}")
+    if args.focus_at is not None:
+        width, height = args.size or DEFAULT_SIZE[args.command]
+        x, y = args.focus_at
+        if not (0 <= x < width and 0 <= y < height):
+            raise DofsplatError(f"--focus-at pixel ({x:g}, {y:g}) lies outside the "
+                                f"{width}x{height} image")
+
+
+# -- outputs -----------------------------------------------------------------------------
+
+
+def _check_outputs(args) -> dict[str, Path]:
+    """The output paths by role ("image", "depth", "stats"), checked before any work."""
+    from .io import check_output_path
+
+    outputs = {"image": check_output_path(args.output)}
+    if args.depth is not None:
+        outputs["depth"] = check_output_path(args.depth)
+    if args.stats is not None:
+        outputs["stats"] = _check_stats_path(Path(args.stats))
+    seen = {}
+    for role, path in outputs.items():
+        key = path.resolve()
+        if key in seen:
+            raise DofsplatError(f"the {role} output and the {seen[key]} output are the same "
+                                f"file: {path}")
+        seen[key] = role
+    return outputs
+
+
+def _check_stats_path(path: Path) -> Path:
+    if path.is_dir():
+        raise DofsplatError(f"{path}: is a directory, expected a file name for --stats")
+    if not path.parent.is_dir():
+        raise DofsplatError(f"{path}: directory {str(path.parent)!r} does not exist")
+    return path
+
+
+def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
+                 settings) -> None:
+    """result.stats, plus the camera, lens and settings used, as JSON."""
+    import json
+
+    from .io import atomic_write
+
+    left, right, bottom, top, near = camera.frustum_lrbtn()
+    record = dict(result.stats)
+    record["camera"] = {
+        "eye": list(camera.eye), "target": list(camera.target), "up": list(camera.up),
+        "width": camera.width, "height": camera.height,
+        "fov_y_deg": camera.fov_y,  # None when the projection was given as a frustum
+        "frustum_lrbtn": [left, right, bottom, top, near],
+    }
+    record["lens"] = None if lens is None else {
+        "focus_distance": float(lens.focus_distance),
+        "aperture": lens.diameter,
+        "focal_length": None if lens.focal_length is None else float(lens.focal_length),
+        "f_number": None if lens.f_number is None else float(lens.f_number),
+        "focus_source": focus_source,
+        "focus_at_px": None if args.focus_at is None else list(args.focus_at),
+    }
+    record["settings"] = {
+        "cutoff": settings.cutoff, "dof": settings.dof, "shading": settings.shading,
+        "background_linear": list(settings.background),
+        "cull_backfaces": settings.cull_backfaces,
+    }
+    record["files"] = {"input": getattr(args, "input", None),
+                       **{role: str(p) for role, p in outputs.items()}}
+    # one line per key; lists of numbers stay on one line
+    text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]",
+                  lambda m: "[" + " ".join(m[1].split()) + "]",
+                  json.dumps(record, indent=2)) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
+def _summary(paths: list[Path], stats: dict) -> str:
+    """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``"""
+    return (f"wrote {', '.join(str(p) for p in paths)} ({stats['width']}x{stats['height']}, "
+            f"{stats['points_in']:,} points, {stats['splats_rendered']:,} splats, "
+            f"{_count(stats['fragments'])} fragments, {stats['total_ms'] / 1000:.2f} s)")
+
+
+def _count(n: int) -> str:
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e4, "k")):
+        if n >= scale:
+            return f"{n / scale:.1f}{suffix}"
+    return f"{n:,}"
+
+
+# -- the parser --------------------------------------------------------------------------
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Wraps prose paragraphs; keeps indented blocks (the examples) as written."""
+
+    def _fill_text(self, text, width, indent):
+        paragraphs = []
+        for block in text.strip("\n").split("\n\n"):
+            lines = block.splitlines()
+            if any(line.startswith(" ") for line in lines[1:]):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(super()._fill_text(block, width, indent))
+        return "\n\n".join(paragraphs)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage mistake is one line on stderr (raised, printed by main)."""
+
+    def error(self, message):
+        raise DofsplatError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = _Parser(
+        prog="dofsplat", allow_abbrev=False, epilog=_EPILOG,
+        formatter_class=_HelpFormatter,
+        description="Render surfel models (points with normals and radii) with depth of "
+                    "field, by EWA surface splatting (Krivanek & Zara 2003).")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND",
+                                     parser_class=_Parser)
+
+    render = commands.add_parser(
+        "render", allow_abbrev=False, epilog=_EPILOG,
+        formatter_class=_HelpFormatter,
+        help="render a surfel model file (.ply, .ply.gz)",
+        description="Render a surfel model with depth of field. Without camera options the "
+                    "model is framed from its +z side, focused on its centre, with a lens "
+                    f"diameter of {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of its "
+                    "bounding box.")
+    render.add_argument("input", metavar="INPUT",
+                        help="surfel model: a PLY file (.ply or .ply.gz) with x y z, nx ny nz "
+                             "and radius per vertex")
+    render.add_argument("-o", "--output", metavar="OUTPUT", required=True,
+                        help="image to write: .png (8-bit sRGB), .npy (float32 linear RGBA, "
+                             "H x W x 4) or .exr (float32 linear RGBA + Z)")
+    _add_view_options(render, "render")
+    render.set_defaults(run=run_render)
+
+    demo = commands.add_parser(
+        "demo", allow_abbrev=False, epilog=_EPILOG,
+        formatter_class=_HelpFormatter,
+        help="render the built-in scene: a textured plane and three spheres",
+        description="Render the built-in demo scene: a textured plane with three spheres, "
+                    "the middle one in focus. The scene brings its own camera (vertical field "
+                    "of view 45 degrees) and lens (diameter 0.12 world units; the plane is 4 "
+                    "world units wide); the options below override them.")
+    demo.add_argument("-o", "--output", metavar="OUTPUT", default="demo.png",
+                      help="image to write: .png, .npy or .exr (default: demo.png)")
+    _add_view_options(demo, "demo")
+    demo.set_defaults(run=run_demo)
+
+    parser.set_defaults(run=_no_command)
+    return parser
+
+
+def _no_command(args) -> int:
+    raise DofsplatError("no command given: use 'dofsplat render INPUT -o OUTPUT' or "
+                        "'dofsplat demo' (dofsplat --help tells more)")
+
+
+def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
+    """The options that ``render`` and ``demo`` share; help texts name each one's defaults."""
+    is_demo = command == "demo"
+    w, h = DEFAULT_SIZE[command]
+
+    out = p.add_argument_group("more outputs")
+    out.add_argument("--depth", metavar="FILE",
+                     help="also write the depth map: camera depth in world units, inf where "
+                          "empty (.npy or .exr); .png gives a 16-bit picture of it, near is "
+                          "dark, empty is black")
+    out.add_argument("--stats", metavar="FILE.json",
+                     help="also write statistics as JSON: points in, splats rendered, "
+                          "fragments, milliseconds per stage and in total, and the camera, "
+                          "lens and settings used")
+    out.add_argument("-q", "--quiet", action="store_true",
+                     help="do not print the summary line")
+
+    cam = p.add_argument_group(
+        "camera", "Where the camera is and what it sees. "
+        + ("Default: the scene's camera." if is_demo else
+           "Default: looking at the centre of the model's bounding box along -z, from far "
+           "enough away that the whole box is in view."))
+    cam.add_argument("--size", metavar="WxH", type=_size,
+                     help=f"image size in pixels (default: {w}x{h})")
+    cam.add_argument("--eye", nargs=3, type=_number, metavar=("X", "Y", "Z"),
+                     help="camera position, world units")
+    cam.add_argument("--target", nargs=3, type=_number, metavar=("X", "Y", "Z"),
+                     help="point the camera looks at, world units"
+                          + ("" if is_demo else " (default: the model's centre)"))
+    cam.add_argument("--up", nargs=3, type=_number, metavar=("X", "Y", "Z"),
+                     help="direction that appears upwards in the image (default: 0 1 0)")
+    view = cam.add_mutually_exclusive_group()
+    view.add_argument("--fov", metavar="DEG", type=_fov,
+                      help="vertical field of view in degrees (default: "
+                           + ("45)" if is_demo else f"{DEFAULT_FOV_DEG:g})"))
+    view.add_argument("--frustum", nargs=5, type=_number, metavar=("L", "R", "B", "T", "N"),
+                      help="the projection as glFrustum: the window [L, R] x [B, T] on the "
+                           "near plane at distance N in front of the eye, world units; "
+                           "(R-L)/(T-B) must equal W/H")
+
+    lens = p.add_argument_group(
+        "lens (depth of field)",
+        "A thin lens: surfaces at the focus distance are sharp, nearer and farther ones blur "
+        "the more, the wider the lens. Default: "
+        + ("the scene's lens, diameter 0.12 world units, focused on the middle sphere."
+           if is_demo else
+           f"diameter {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of the model's "
+           "bounding box, focused on the target."))
+    diameter = lens.add_mutually_exclusive_group()
+    diameter.add_argument("--aperture", metavar="A", type=_non_negative,
+                          help="lens diameter, world units; 0 is a pinhole (all sharp)")
+    diameter.add_argument("--f-number", metavar="N", type=_positive,
+                          help="f-number (f-stop) n, with --focal-length: the lens diameter "
+                               "is F / n, so a smaller n blurs more")
+    diameter.add_argument("--no-dof", action="store_true",
+                          help="no depth of field: a pinhole camera, everything sharp")
+    lens.add_argument("--focal-length", metavar="F", type=_positive,
+                      help="focal length F, world units (e.g. 0.05 for a 50 mm lens in a "
+                           "model measured in metres); with --f-number it sets the lens "
+                           "diameter, and the focus distance must exceed it. The field of "
+                           "view is set by --fov or --frustum, not by F")
+    focus = lens.add_mutually_exclusive_group()
+    focus.add_argument("--focus", metavar="P", type=_positive,
+                       help="focus distance, world units, measured along the view axis "
+                            "(default: "
+                            + ("the middle sphere; with --eye or --target, the distance "
+                               "from eye to target)" if is_demo else
+                               "the distance from eye to target)"))
+    focus.add_argument("--focus-at", nargs=2, type=_number, metavar=("X", "Y"),
+                       help="focus on the surface seen at pixel (X, Y), counted from the "
+                            "top-left corner of the image (costs one extra, sharp render)")
+
+    ren = p.add_argument_group("rendering")
+    ren.add_argument("--cutoff", metavar="C", type=_positive, default=DEFAULT_CUTOFF,
+                     help="splat cutoff c: each Gaussian kernel is cut where its exponent "
+                          f"reaches c; larger is smoother and slower (default: "
+                          f"{DEFAULT_CUTOFF:g}, as in the paper)")
+    ren.add_argument("--shading", choices=("phong", "none"), default="phong",
+                     help="phong: lit by a light at the camera (default); none: the surfel "
+                          "colours as they are")
+    ren.add_argument("--background", nargs=3, type=_unit, metavar=("R", "G", "B"),
+                     help="background colour, display (sRGB) values in 0..1 "
+                          "(default: 0 0 0, black)")
+    ren.add_argument("--no-cull", action="store_true",
+                     help="keep surfels that face away from the camera and light both "
+                          "sides (for models with inconsistent normals)")
+
+
+# -- argument types: each raises ArgumentTypeError, which argparse reports on one line ---
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 640x480, "
+                                         f"got {text!r}")
+    width, height = int(m[1]), int(m[2])
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"the image needs at least 1x1 pixels, got {text!r}")
+    return width, height
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _positive(text: str) -> float:
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def _unit(text: str) -> float:
+    value = _number(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in 0..1, got {text!r}")
+    return value
+
+
+def _fov(text: str) -> float:
+    value = _number(text)
+    if not 0.0 < value < 180.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 180 degrees, got {text!r}")
+    return value
+
+
+# -- messages ----------------------------------------------------------------------------
+
+
+def _print_error(message: str) -> None:
+    print(f"dofsplat: error: {_one_line(message)}", file=sys.stderr)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"dofsplat: warning: {_one_line(str(message))}", file=sys.stderr)
+
+
+def _one_line(message: str) -> str:
+    return " ".join(part.strip() for part in message.splitlines() if part.strip()) or "failed"

@@ -1,0 +1,349 @@
+"""Tests of the command line: outputs, defaults, autofocus, and one-line errors.
+
+Most cases call ``cli.main(argv)`` in this process (it returns the exit status), so that
+the numba kernels load once; a few run ``python -m dofsplat`` end to end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from dofsplat import cli
+from dofsplat.camera import Camera
+from dofsplat.io import save_surfels
+from dofsplat.surfels import Surfels
+
+SIZE = (96, 72)  # W, H: small frames keep the suite fast
+SIZE_ARG = f"{SIZE[0]}x{SIZE[1]}"
+GRID = 64  # the test model: GRID x GRID surfels on the square [-1, 1]^2 of the z = 0 plane
+OBLIQUE = ["--eye", "0", "-2", "2.5", "--target", "0", "0", "0"]  # plane depth varies
+
+
+@pytest.fixture(scope="module")
+def plane_ply(tmp_path_factory):
+    """A surfel PLY of a square facing +z, so that the default framing sees it head on."""
+    h = 2.0 / GRID
+    g = (np.arange(GRID) + 0.5) * h - 1.0
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    n = GRID * GRID
+    surfels = Surfels(positions=np.stack([x, y, np.zeros(n)], axis=1),
+                      normals=np.tile([0.0, 0.0, 1.0], (n, 1)), radius=np.full(n, h),
+                      colors=np.stack([0.5 + 0.5 * x, 0.5 + 0.5 * y, np.full(n, 0.5)], axis=1))
+    path = tmp_path_factory.mktemp("model") / "plane.ply"
+    save_surfels(path, surfels)
+    return path
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def run_main(argv, capsys):
+    """(exit status, stdout, stderr) of cli.main(argv)."""
+    status = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def assert_one_line_error(status, err):
+    assert status == 2
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("dofsplat: error: ") and len(lines[0]) > len("dofsplat: error: ")
+    assert err.endswith("\n")
+
+
+def plane_depth_at(stats, x, y):
+    """Camera depth of the z = 0 plane at pixel position (x, y), by ray intersection."""
+    cam = stats["camera"]
+    camera = Camera(eye=cam["eye"], target=cam["target"], up=cam["up"], width=cam["width"],
+                    height=cam["height"], fov_y=cam["fov_y_deg"])
+    origin, direction = camera.ray_through_pixel(x, y)
+    p_plane = origin - origin[2] / direction[2] * direction
+    forward = np.subtract(camera.target, camera.eye)
+    return float(np.dot(p_plane - origin, forward / np.linalg.norm(forward)))
+
+
+# ---------------------------------------------------------------------------------------
+# end to end, in a fresh interpreter
+
+
+def test_demo_end_to_end(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "dofsplat", "demo", "--size", SIZE_ARG, "-o", "demo.png",
+         "--stats", "stats.json", "--depth", "depth.npy"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == ""
+    assert re.fullmatch(r"wrote demo\.png, depth\.npy, stats\.json \(96x72, 337,807 points, "
+                        r"[\d,]+ splats, [\d.]+[kMG]? fragments, \d+\.\d\d s\)\n", proc.stderr)
+
+    with Image.open(tmp_path / "demo.png") as im:
+        assert im.size == SIZE and im.mode == "RGB"
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    for key in ("points_in", "splats_rendered", "fragments", "total_ms"):
+        assert key in stats
+    assert stats["points_in"] == 337807
+    assert 0 < stats["splats_rendered"] <= stats["points_in"]
+    assert stats["fragments"] > 0 and stats["total_ms"] > 0
+    assert stats["lens"]["focus_source"] == "default" and stats["lens"]["aperture"] == 0.12
+    depth = np.load(tmp_path / "depth.npy")
+    assert depth.shape == SIZE[::-1] and depth.dtype == np.float32
+    finite = np.isfinite(depth)
+    assert finite.any() and np.all(depth[finite] > 0)
+
+
+def test_module_error_is_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "dofsplat", "render", "missing.ply",
+                           "-o", "out.png"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=60)
+    assert_one_line_error(proc.returncode, proc.stderr)
+    assert "missing.ply" in proc.stderr
+    assert os.listdir(tmp_path) == []
+
+
+def test_import_is_cheap():
+    code = ("import sys, dofsplat.cli; "
+            "print(sorted(m for m in ('numba', 'PIL', 'plyfile', 'dofsplat.demo') "
+            "if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+# ---------------------------------------------------------------------------------------
+# render, in process
+
+
+def test_render_png_and_npy(plane_ply, workdir, capsys):
+    status, out, err = run_main(["render", plane_ply, "-o", "plane.png", "--size", SIZE_ARG,
+                                 "--stats", "stats.json"], capsys)
+    assert status == 0 and out == ""
+    assert err.startswith("wrote plane.png, stats.json (96x72, 4,096 points, ")
+    with Image.open("plane.png") as im:
+        assert im.size == SIZE
+
+    status, out, err = run_main(["render", plane_ply, "-o", "plane.npy", "--size", SIZE_ARG,
+                                 "--quiet"], capsys)
+    assert status == 0 and out == "" and err == ""
+    image = np.load("plane.npy")
+    assert image.shape == (SIZE[1], SIZE[0], 4) and image.dtype == np.float32
+    # the framed square covers the centre of the image, the corners are background; the
+    # coverage of a surface is its accumulated weight, which ripples by ~5 % on a grid
+    assert image[SIZE[1] // 2, SIZE[0] // 2, 3] == pytest.approx(1.0, abs=0.06)
+    assert image[0, 0, 3] == 0.0
+
+    # render's defaults: framing on the model's centre, focus there, lens 0.1 x half diagonal
+    stats = json.loads(open("stats.json").read())
+    half_diagonal = math.hypot(2 - 2 / GRID, 2 - 2 / GRID) / 2
+    assert stats["lens"]["aperture"] == pytest.approx(0.1 * half_diagonal, rel=1e-6)
+    assert stats["camera"]["target"] == pytest.approx([0, 0, 0], abs=1e-6)
+    assert stats["lens"]["focus_distance"] == pytest.approx(stats["camera"]["eye"][2], rel=1e-6)
+    assert stats["camera"]["fov_y_deg"] == 40.0
+    assert stats["files"]["input"] == str(plane_ply)
+
+
+def test_render_lens_and_settings_options(plane_ply, workdir, capsys):
+    status, _, err = run_main(["render", plane_ply, "-o", "a.png", "--size", SIZE_ARG,
+                               "--stats", "a.json", "--focal-length", "0.5",
+                               "--f-number", "4", "--focus", "3", "--cutoff", "3",
+                               "--shading", "none", "--no-cull", "--background", "0.5",
+                               "0.5", "0.5", *OBLIQUE], capsys)
+    assert status == 0, err
+    stats = json.loads(open("a.json").read())
+    assert stats["lens"] == {"focus_distance": 3.0, "aperture": 0.125, "focal_length": 0.5,
+                             "f_number": 4.0, "focus_source": "--focus", "focus_at_px": None}
+    settings = stats["settings"]
+    assert settings["cutoff"] == 3.0 and settings["shading"] == "none"
+    assert not settings["cull_backfaces"]
+    # the background is given in display sRGB: 0.5 is linear 0.214, and 128 again in the PNG
+    assert settings["background_linear"] == pytest.approx([0.2140] * 3, abs=1e-4)
+    with Image.open("a.png") as im:
+        assert np.asarray(im)[0, 0].tolist() == [128, 128, 128]
+    assert stats["camera"]["eye"] == [0.0, -2.0, 2.5]
+
+
+def test_no_dof_and_frustum(plane_ply, workdir, capsys):
+    w, h = SIZE
+    frustum = ["-0.04", "0.04", str(-0.04 * h / w), str(0.04 * h / w), "0.1"]
+    status, _, err = run_main(["render", plane_ply, "-o", "b.npy", "--size", SIZE_ARG,
+                               "--no-dof", "--frustum", *frustum, "--stats", "b.json"], capsys)
+    assert status == 0, err
+    stats = json.loads(open("b.json").read())
+    assert stats["lens"] is None and stats["settings"]["dof"] is False
+    assert stats["camera"]["fov_y_deg"] is None
+    assert stats["camera"]["frustum_lrbtn"] == pytest.approx([float(v) for v in frustum])
+
+
+@pytest.mark.parametrize("pixel", [(48, 36), (48, 60)], ids=["centre", "near-part"])
+def test_focus_at_finds_the_plane(plane_ply, workdir, capsys, pixel):
+    # Seen obliquely, the plane's depth varies over the image by ~40 %; autofocus must find
+    # the depth at the pixel asked for (1 %: the depth map is that of the nearest splat
+    # layer, whose z-range and reconstruction add far less than that).
+    status, _, err = run_main(["render", plane_ply, "-o", "f.png", "--size", SIZE_ARG,
+                               "--stats", "f.json", "--focus-at", *pixel, *OBLIQUE], capsys)
+    assert status == 0, err
+    stats = json.loads(open("f.json").read())
+    lens = stats["lens"]
+    expected = plane_depth_at(stats, pixel[0] + 0.5, pixel[1] + 0.5)
+    assert lens["focus_source"] == "--focus-at" and lens["focus_at_px"] == list(pixel)
+    assert lens["focus_distance"] == pytest.approx(expected, rel=0.01)
+    if pixel == (48, 60):  # not merely the eye-to-target distance
+        assert abs(expected / math.dist(stats["camera"]["eye"], [0, 0, 0]) - 1) > 0.05
+
+
+# ---------------------------------------------------------------------------------------
+# demo, in process
+
+
+def test_demo_defaults_and_overrides(workdir, capsys):
+    status, _, err = run_main(["demo", "--size", "32x24", "--stats", "d.json", "--aperture",
+                               "0", "--fov", "30"], capsys)
+    assert status == 0, err
+    assert err.startswith("wrote demo.png, d.json (32x24, ")
+    with Image.open("demo.png") as im:
+        assert im.size == (32, 24)
+    stats = json.loads(open("d.json").read())
+    assert stats["lens"]["aperture"] == 0.0
+    assert stats["camera"]["fov_y_deg"] == 30.0
+    assert stats["camera"]["eye"] == [0.0, 1.2, 3.4]  # the scene's camera
+
+    status, _, err = run_main(["demo", "--size", "32x24", "--stats", "d.json", "-q",
+                               "--eye", "0", "2", "4", "--target", "0", "0", "1"], capsys)
+    assert status == 0 and err == ""
+    lens = json.loads(open("d.json").read())["lens"]
+    assert lens["focus_distance"] == pytest.approx(math.dist([0, 2, 4], [0, 0, 1]))
+
+
+def test_help_and_version(capsys):
+    status, out, _ = run_main(["render", "--help"], capsys)
+    assert status == 0
+    for text in ("--focus-at", "world units", "pixels", "half diagonal"):
+        assert text in out
+    status, out, _ = run_main(["--version"], capsys)
+    assert status == 0 and out.startswith("dofsplat ")
+
+
+# ---------------------------------------------------------------------------------------
+# user mistakes: one line, status 2, no output file
+
+
+def _garbage_ply(path):
+    path.write_bytes(b"this is not a PLY file\n\x00\x01")
+
+
+def _model_with_unknown_extension(path):
+    path.write_text("1 2 3\n")
+
+
+BAD_RENDER = {
+    "missing-input": (["render", "missing.ply", "-o", "out.png"], None),
+    "unknown-input-extension": (["render", "model.xyz", "-o", "out.png"],
+                                ("model.xyz", _model_with_unknown_extension)),
+    "unreadable-input": (["render", "garbage.ply", "-o", "out.png"],
+                         ("garbage.ply", _garbage_ply)),
+    "size-zero": (["render", "{ply}", "-o", "out.png", "--size", "0x5"], None),
+    "size-text": (["render", "{ply}", "-o", "out.png", "--size", "abc"], None),
+    "negative-f-number": (["render", "{ply}", "-o", "out.png", "--focal-length", "0.05",
+                           "--f-number", "-2"], None),
+    "f-number-alone": (["render", "{ply}", "-o", "out.png", "--f-number", "2"], None),
+    "focus-inside-focal-length": (["render", "{ply}", "-o", "out.png", "--focal-length",
+                                   "2", "--f-number", "2", "--focus", "1.5"], None),
+    "default-focus-inside-focal-length": (["render", "{ply}", "-o", "out.png",
+                                           "--focal-length", "100", "--f-number", "2"], None),
+    "cutoff-zero": (["render", "{ply}", "-o", "out.png", "--cutoff", "0"], None),
+    "cutoff-text": (["render", "{ply}", "-o", "out.png", "--cutoff", "x"], None),
+    "unsupported-output": (["render", "{ply}", "-o", "out.jpg"], None),
+    "missing-output-dir": (["render", "{ply}", "-o", "nodir/out.png"], None),
+    "bad-depth-output": (["render", "{ply}", "-o", "out.png", "--depth", "depth.txt"], None),
+    "same-output-twice": (["render", "{ply}", "-o", "out.npy", "--depth", "out.npy"], None),
+    "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None),
+    "focus-at-outside": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
+                          "--focus-at", "96", "10"], None),
+    "focus-at-background": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
+                             "--focus-at", "0", "0"], None),
+    "focus-and-focus-at": (["render", "{ply}", "-o", "out.png", "--focus", "2",
+                            "--focus-at", "1", "1"], None),
+    "fov-and-frustum": (["render", "{ply}", "-o", "out.png", "--fov", "30", "--frustum",
+                         "-1", "1", "-1", "1", "1"], None),
+    "frustum-aspect": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
+                        "--frustum", "-1", "1", "-1", "1", "1"], None),
+    "frustum-near-zero": (["render", "{ply}", "-o", "out.png", "--frustum", "-1", "1",
+                           "-1", "1", "0"], None),
+    "fov-range": (["render", "{ply}", "-o", "out.png", "--fov", "180"], None),
+    "up-along-view": (["render", "{ply}", "-o", "out.png", "--up", "0", "0", "1"], None),
+    "background-range": (["render", "{ply}", "-o", "out.png", "--background", "2", "0",
+                          "0"], None),
+    "eye-too-few": (["render", "{ply}", "-o", "out.png", "--eye", "1", "2"], None),
+    "no-output": (["render", "{ply}"], None),
+    "unknown-option": (["render", "{ply}", "-o", "out.png", "--bogus"], None),
+    "shading-choice": (["render", "{ply}", "-o", "out.png", "--shading", "flat"], None),
+    "no-command": ([], None),
+    "unknown-command": (["paint"], None),
+    "demo-bad-aperture": (["demo", "--aperture", "-1"], None),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_RENDER))
+def test_user_mistakes(case, plane_ply, workdir, capsys):
+    argv, make_input = BAD_RENDER[case]
+    if make_input is not None:
+        name, make = make_input
+        make(workdir / name)
+    before = set(os.listdir(workdir))
+    argv = [a.format(ply=plane_ply) for a in argv]
+    status, out, err = run_main(argv, capsys)
+    assert_one_line_error(status, err)
+    assert out == ""
+    assert set(os.listdir(workdir)) == before  # no output, no temporary left behind
+
+
+def test_interrupt_exits_quietly(workdir, capsys, monkeypatch):
+    import dofsplat.demo
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dofsplat.demo, "demo_scene", interrupted)
+    status, out, err = run_main(["demo"], capsys)
+    assert status == 130 and out == "" and err == ""
+    assert os.listdir(workdir) == []
+
+
+def test_bugs_keep_their_traceback(workdir, monkeypatch):
+    import dofsplat.demo
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(dofsplat.demo, "demo_scene", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main(["demo"])
+
+
+def test_warnings_are_one_line(workdir, capsys):
+    from dofsplat.io import write_surfel_ply
+
+    surfels = Surfels(positions=[[0, 0, 0], [0.1, 0, 0]], normals=[[0, 0, 1]] * 2,
+                      radius=[0.1, 0.1], colors=[[1, 1, 1]] * 2)
+    write_surfel_ply(workdir / "two.ply", surfels, binary=False)
+    text = (workdir / "two.ply").read_text().splitlines()
+    last = len(text) - 1
+    text[last] = " ".join(["nan"] + text[last].split()[1:])  # x of the second surfel
+    (workdir / "two.ply").write_text("\n".join(text) + "\n")
+    status, _, err = run_main(["render", "two.ply", "-o", "two.png", "--size", "16x16",
+                               "-q"], capsys)
+    assert status == 0
+    assert re.fullmatch(r"dofsplat: warning: .*dropped 1 of 2 surfels.*\n", err)
