@@ -249,9 +249,6 @@ class EyeLens:
         return k * np.abs(1.0 / np.asarray(depth, np.float64) - inv_p)
 
 
-PINHOLE = None  # pass lens=None (or a lens with aperture 0) for no depth of field
-
-
 # ----------------------------------------------------------------------------------------
 # The textbook equations, as printed; the tests check the reduced form against them.
 
