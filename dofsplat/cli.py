@@ -210,13 +210,13 @@ def _check_arguments(args) -> None:
 
 def _check_outputs(args) -> dict[str, Path]:
     """The output paths by role ("image", "depth", "stats"), checked before any work."""
-    from .io import check_output_path
+    from .io import check_output_path, check_writable_path
 
     outputs = {"image": check_output_path(args.output)}
     if args.depth is not None:
         outputs["depth"] = check_output_path(args.depth)
     if args.stats is not None:
-        outputs["stats"] = _check_stats_path(Path(args.stats))
+        outputs["stats"] = check_writable_path(args.stats, "a file name for --stats")
     seen = {}
     for role, path in outputs.items():
         key = path.resolve()
@@ -225,14 +225,6 @@ def _check_outputs(args) -> dict[str, Path]:
                                 f"file: {path}")
         seen[key] = role
     return outputs
-
-
-def _check_stats_path(path: Path) -> Path:
-    if path.is_dir():
-        raise DofsplatError(f"{path}: is a directory, expected a file name for --stats")
-    if not path.parent.is_dir():
-        raise DofsplatError(f"{path}: directory {str(path.parent)!r} does not exist")
-    return path
 
 
 def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
@@ -312,6 +304,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from .demo import DEMO_APERTURE, DEMO_FOV_DEG, PLANE_SIZE
 
     parser = _Parser(
         prog="dofsplat", allow_abbrev=False, epilog=_EPILOG,
@@ -345,8 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="render the built-in scene: a textured plane and three spheres",
         description="Render the built-in demo scene: a textured plane with three spheres, "
                     "the middle one in focus. The scene brings its own camera (vertical field "
-                    "of view 45 degrees) and lens (diameter 0.12 world units; the plane is 4 "
-                    "world units wide); the options below override them.")
+                    f"of view {DEMO_FOV_DEG:g} degrees) and lens (diameter {DEMO_APERTURE:g} "
+                    f"world units; the plane is {PLANE_SIZE:g} world units wide); the options "
+                    "below override them.")
     demo.add_argument("-o", "--output", metavar="OUTPUT", default="demo.png",
                       help="image to write: .png, .npy or .exr (default: demo.png)")
     _add_view_options(demo, "demo")
@@ -363,6 +357,8 @@ def _no_command(args) -> int:
 
 def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     """The options that ``render`` and ``demo`` share; help texts name each one's defaults."""
+    from .demo import DEMO_APERTURE, DEMO_FOV_DEG
+
     is_demo = command == "demo"
     w, h = DEFAULT_SIZE[command]
 
@@ -395,7 +391,7 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     view = cam.add_mutually_exclusive_group()
     view.add_argument("--fov", metavar="DEG", type=_fov,
                       help="vertical field of view in degrees (default: "
-                           + ("45)" if is_demo else f"{DEFAULT_FOV_DEG:g})"))
+                           + (f"{DEMO_FOV_DEG:g})" if is_demo else f"{DEFAULT_FOV_DEG:g})"))
     view.add_argument("--frustum", nargs=5, type=_number, metavar=("L", "R", "B", "T", "N"),
                       help="the projection as glFrustum: the window [L, R] x [B, T] on the "
                            "near plane at distance N in front of the eye, world units; "
@@ -405,7 +401,8 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
         "lens (depth of field)",
         "A thin lens: surfaces at the focus distance are sharp, nearer and farther ones blur "
         "the more, the wider the lens. Default: "
-        + ("the scene's lens, diameter 0.12 world units, focused on the middle sphere."
+        + (f"the scene's lens, diameter {DEMO_APERTURE:g} world units, focused on the "
+           "middle sphere."
            if is_demo else
            f"diameter {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of the model's "
            "bounding box, focused on the target."))

@@ -15,6 +15,10 @@ import numpy as np
 from .camera import Camera, ThinLens
 from .surfels import Material, Surfels, concatenate
 
+PLANE_SIZE = 4.0  # world units, the side of the textured plane
+DEMO_FOV_DEG = 45.0  # vertical field of view of the demo camera
+DEMO_APERTURE = 0.12  # lens diameter of the demo scene, world units
+
 
 def plane_texture(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """A colourful test texture on [0, 1]^2: checks, hue ramps and fine lines. (M, 3) linear."""
@@ -60,25 +64,25 @@ def plane_scene(width: int = 512, height: int = 512):
 
     Returns (surfels, camera, lens); the lens aperture is 0.1 world units.
     """
-    surf = textured_plane(512, 4.0)
+    surf = textured_plane(512, PLANE_SIZE)
     cam = Camera(eye=(0.0, 1.2, 3.2), target=(0.0, 0.0, 0.0), width=width, height=height,
-                 fov_y=45.0, near=0.01)
+                 fov_y=DEMO_FOV_DEG, near=0.01)
     lens = ThinLens(focus_distance=math.dist(cam.eye, cam.target), aperture=0.1)
     return surf, cam, lens
 
 
 def demo_scene(width: int = 800, height: int = 600):
     """Plane and three spheres (near, focused, far). Returns (surfels, camera, lens)."""
-    spacing = 4.0 / 512
+    spacing = PLANE_SIZE / 512
     parts = [
-        textured_plane(512, 4.0),
+        textured_plane(512, PLANE_SIZE),
         sphere((-0.9, 0.35, 1.3), 0.35, spacing, (0.9, 0.15, 0.1)),  # near, red
         sphere((0.25, 0.35, 0.0), 0.35, spacing, (0.95, 0.8, 0.2)),  # in focus, yellow
         sphere((1.1, 0.35, -1.4), 0.35, spacing, (0.15, 0.35, 0.9)),  # far, blue
     ]
     surf = concatenate(parts)
     cam = Camera(eye=(0.0, 1.2, 3.4), target=(0.0, 0.2, 0.0), width=width, height=height,
-                 fov_y=45.0, near=0.01)
+                 fov_y=DEMO_FOV_DEG, near=0.01)
     focus = float(np.linalg.norm(np.subtract((0.25, 0.35, 0.0), cam.eye)))
-    lens = ThinLens(focus_distance=focus, aperture=0.12)
+    lens = ThinLens(focus_distance=focus, aperture=DEMO_APERTURE)
     return surf, cam, lens

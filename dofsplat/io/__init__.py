@@ -19,7 +19,7 @@ from ..errors import DofsplatError
 from ..surfels import Surfels
 from .colors import linear_to_srgb, srgb_to_linear
 from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
-                     read_image, write_depth, write_image)
+                     check_writable_path, read_image, write_depth, write_image)
 from .ply import read_surfel_ply, write_surfel_ply
 
 LOADERS: dict[str, Callable[..., Surfels]] = {
@@ -33,7 +33,7 @@ SAVERS: dict[str, Callable[..., object]] = {
 }
 
 __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
-           "check_output_path", "linear_to_srgb", "load", "read_image", "read_surfel_ply",
+           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "read_image", "read_surfel_ply",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
 
 

@@ -88,20 +88,30 @@ def _check_parent_dir(path: Path) -> None:
 # Output paths
 
 
-def check_output_path(path) -> Path:
-    """Validate an image output path before any rendering work is done.
+def check_writable_path(path, what: str = "a file name") -> Path:
+    """Check that ``path`` can be created: not a directory, in an existing writable one.
 
-    Checks the extension (one of SUPPORTED_IMAGE_EXTENSIONS, any case), that the parent
-    directory exists and is writable, that the path is not a directory, and that the
-    OpenEXR package is importable for ``.exr``. Raises DofsplatError; returns the path.
+    ``what`` names the expected file in the message. Raises DofsplatError; returns the path.
     """
     path = Path(path)
-    fmt = _image_format(path)
     if path.is_dir():
-        raise DofsplatError(f"{path}: is a directory, expected an image file name")
+        raise DofsplatError(f"{path}: is a directory, expected {what}")
     _check_parent_dir(path)
     if not os.access(path.parent, os.W_OK):
         raise DofsplatError(f"{path}: directory {str(path.parent)!r} is not writable")
+    return path
+
+
+def check_output_path(path) -> Path:
+    """Validate an image output path before any rendering work is done.
+
+    Checks the extension (one of SUPPORTED_IMAGE_EXTENSIONS, any case), then
+    :func:`check_writable_path`, and that the OpenEXR package is importable for ``.exr``.
+    Raises DofsplatError; returns the path.
+    """
+    path = Path(path)
+    fmt = _image_format(path)
+    check_writable_path(path, "an image file name")
     if fmt == ".exr":
         _import_openexr()
     return path
