@@ -33,6 +33,7 @@ class RenderSettings:
     z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
     exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
     max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
+    lod: bool = False  # select splats from the LOD hierarchy (Section 6.2): speed independent of the aperture
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
