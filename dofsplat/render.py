@@ -33,7 +33,9 @@ class RenderSettings:
     z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
     exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
     max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
-    lod: bool = False  # select splats from the LOD hierarchy (Section 6.2): speed independent of the aperture
+    lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
+    lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
+    show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
@@ -49,6 +51,10 @@ class RenderSettings:
             raise DofsplatError(f"z_thickness must be >= 0, got {self.z_thickness}")
         if self.max_tile_pairs < 1:
             raise DofsplatError("max_tile_pairs must be positive")
+        if not (math.isfinite(self.lod_pixel_threshold) and self.lod_pixel_threshold >= 0):
+            raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
+        if self.show_lod and not self.lod:
+            raise DofsplatError("show_lod needs lod=True")
 
 
 @dataclass
@@ -79,13 +85,15 @@ class RenderResult:
 
 
 def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = None,
-           settings: RenderSettings | None = None) -> RenderResult:
+           settings: RenderSettings | None = None, hierarchy=None) -> RenderResult:
     """Render surfels with depth of field (paper Sections 4-6).
 
-    surfels:  the model (``Surfels``)
-    camera:   view, projection and image size (``Camera``)
-    lens:     ``ThinLens`` or ``EyeLens``; None, or an aperture of 0, is a pinhole
-    settings: ``RenderSettings`` (cutoff, shading, background, ...)
+    surfels:   the model (``Surfels``)
+    camera:    view, projection and image size (``Camera``)
+    lens:      ``ThinLens`` or ``EyeLens``; None, or an aperture of 0, is a pinhole
+    settings:  ``RenderSettings`` (cutoff, shading, background, LOD, ...)
+    hierarchy: the model's ``dofsplat.lod.Hierarchy`` when ``settings.lod``; built on first
+               use and kept on the ``Surfels`` object if not given
     """
     settings = settings or RenderSettings()
     if not isinstance(surfels, Surfels):
@@ -95,11 +103,16 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
     t_start = time.perf_counter()
 
     t = time.perf_counter()
-    rgb = shade_surfels(surfels, camera, settings)
+    source = select(surfels, camera, lens, settings, hierarchy)
+    times["select_ms"] = _ms(t)
+
+    t = time.perf_counter()
+    rgb = shade_surfels(source, camera, settings)
     times["shade_ms"] = _ms(t)
 
     t = time.perf_counter()
-    splats, bbox, visible = project(surfels, rgb, camera, lens, settings)
+    blur_lens = None if settings.show_lod else lens
+    splats, bbox, visible = project(source, rgb, camera, blur_lens, settings)
     times["project_ms"] = _ms(t)
 
     t = time.perf_counter()
@@ -113,6 +126,8 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
 
     stats = {
         "points_in": int(len(surfels)),
+        "lod": bool(settings.lod),
+        "splats_selected": int(source.size),
         "splats_rendered": int(np.count_nonzero(visible)),
         **raster_stats,
         "width": camera.width,
@@ -125,13 +140,49 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
 # -- stages ------------------------------------------------------------------------------
 
 
-def shade_surfels(surfels: Surfels, camera: Camera, settings: RenderSettings) -> np.ndarray:
-    """Per-splat shading before splatting (Section 6.5): (N, 3) float32 linear RGB."""
+def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hierarchy=None):
+    """What to splat: every surfel, or this frame's LOD cut (Section 6.2). A ``SplatSource``."""
+    from .splat.source import from_surfels
+
+    if not settings.lod:
+        return from_surfels(surfels)
+    from .lod import hierarchy_for, select_splats
+
+    tree = hierarchy if hierarchy is not None else hierarchy_for(surfels)
+    if tree.n_surfels != len(surfels):
+        raise DofsplatError(f"the LOD hierarchy was built for {tree.n_surfels} surfels, "
+                            f"the model has {len(surfels)}")
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
+                           settings.lod_pixel_threshold, settings.cull_backfaces)
+    if settings.show_lod:
+        source = source._replace(colors=lod_level_colors(source.level))
+    return source
+
+
+def lod_level_colors(level: np.ndarray) -> np.ndarray:
+    """(S, 3) float32 linear colours for LOD levels (0 = a surfel), for ``show_lod``."""
+    return LOD_PALETTE[np.minimum(level, len(LOD_PALETTE) - 1)]
+
+
+# one colour per LOD level, leaves first (sRGB designed, stored linear); the last repeats
+LOD_PALETTE = (np.array([
+    [0.85, 0.85, 0.85], [0.27, 0.46, 0.85], [0.16, 0.70, 0.86], [0.20, 0.75, 0.50],
+    [0.55, 0.82, 0.25], [0.95, 0.85, 0.20], [0.98, 0.60, 0.15], [0.92, 0.30, 0.20],
+    [0.80, 0.20, 0.55], [0.55, 0.25, 0.70], [0.35, 0.20, 0.45], [0.15, 0.15, 0.15],
+], np.float32) ** 2.2).astype(np.float32)
+
+
+def shade_surfels(source, camera: Camera, settings: RenderSettings) -> np.ndarray:
+    """Per-splat shading before splatting (Section 6.5): (S, 3) float32 linear RGB.
+
+    source: a ``SplatSource`` (or ``Surfels``)
+    """
     from .splat.shade import shade_fast
 
     if settings.shading == "none":
-        return surfels.colors
-    return shade_fast(surfels.positions, surfels.normals, surfels.colors, surfels.material,
+        return source.colors
+    return shade_fast(source.positions, source.normals, source.colors, source.material,
                       camera, settings.lights, two_sided=not settings.cull_backfaces)
 
 
@@ -144,24 +195,28 @@ def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[fl
 
 def surfel_arrays(surfels: Surfels):
     """(tangents, r_u, r_v, area) as the kernels take them; tangents is (0, 3) for disks."""
-    ru = surfels.radius
-    if surfels.is_elliptical:
-        tangents, rv = surfels.tangent, surfels.radius_v
-    else:
-        tangents, rv = np.zeros((0, 3), np.float32), surfels.radius
-    area = ru * rv  # the area a surfel stands for (surfels.py)
-    if surfels.weight is not None:
-        area = area * surfels.weight
-    return tangents, ru, rv, area.astype(np.float32)
+    from .splat.source import from_surfels
+
+    src = from_surfels(surfels)
+    return src.tangents, src.ru, src.rv, src.area
 
 
-def project(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
-            vq: np.ndarray | None = None):
-    """EWA projection with the DOF blur (eqs. 8, 11): splats (N, N_FIELDS), bbox, visible."""
+def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
+            lod_cov: np.ndarray | None = None):
+    """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
+
+    source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
+    ``lod_cov`` (N, 6), if given, is the LOD filter's world covariance per surfel)
+    """
     from .splat.project import N_FIELDS, project_splats
+    from .splat.source import from_surfels
 
-    n = len(surfels)
-    tangents, ru, rv, area = surfel_arrays(surfels)
+    if isinstance(source, Surfels):
+        source = from_surfels(source)
+    if lod_cov is not None:
+        source = source._replace(lod_cov=np.ascontiguousarray(lod_cov, np.float32))
+    n = source.size
+    tangents, ru, rv, area = source.tangents, source.ru, source.rv, source.area
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     ax, bx, ay, by = camera.screen_coefficients()
     near = camera.frustum_lrbtn()[4]
@@ -169,9 +224,8 @@ def project(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens, settings: R
     splats = np.empty((n, N_FIELDS), np.float64)
     bbox = np.empty((n, 4), np.int32)
     visible = np.empty(n, np.bool_)
-    vq = np.zeros(0, np.float32) if vq is None else np.ascontiguousarray(vq, np.float32)
-    project_splats(surfels.positions, surfels.normals, tangents, ru, rv, area,
-                   np.ascontiguousarray(rgb, np.float32), surfels.opacity, vq, view,
+    project_splats(source.positions, source.normals, tangents, ru, rv, area,
+                   np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),

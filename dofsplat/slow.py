@@ -56,8 +56,12 @@ def circumellipse_appendix(A, B, C, r):
 
 
 def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
-                      settings: RenderSettings, vq=None):
-    """numpy twin of ``render.project``: (splats (N, 14), bbox (N, 4), visible (N,))."""
+                      settings: RenderSettings, lod_cov=None):
+    """numpy twin of ``render.project``: (splats (N, 16), bbox (N, 4), visible (N,)).
+
+    lod_cov: optional (N, 6) world covariances of an LOD filter V^{q,l} per surfel
+    (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
+    """
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
                                 EXACT_NORMALISATION_MAX_AREA, GREEN, MX, MY, N_FIELDS, RED,
                                 X0, X1, ZHI, ZLO)
@@ -98,8 +102,12 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         Vr = np.diag([su * su, sv * sv])
         coc_r = coc_k * abs(1.0 / u - inv_focus)
         v_dof = coc_r ** 2 / (2 * LN4)
-        if vq is not None and vq[k] > 0:
-            blur = circumellipse_eig(vq[k] * J @ J.T, v_dof)
+        # the LOD filter in screen space: world covariance through dProj/dp_world
+        Sq = np.zeros((3, 3)) if lod_cov is None else _sym3(lod_cov[k])
+        G = d_proj @ rot
+        Q = G @ Sq @ G.T
+        if np.any(Q != 0):
+            blur = circumellipse_eig(Q, v_dof)
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur
@@ -121,7 +129,10 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         else:
             amp = area_px / (2 * math.pi * math.sqrt(np.linalg.det(W)) * (1 - math.exp(-c)))
         reach = math.sqrt(2 * c)
-        half = reach * math.hypot(su * tu[k, 2], sv * tv[k, 2]) + settings.z_thickness * max(ru[k], rv[k])
+        # depth extent of the level's basis V^r + V^q (Section 5.3)
+        var_z = (su * tu[k, 2]) ** 2 + (sv * tv[k, 2]) ** 2 + rot[2] @ Sq @ rot[2]
+        sigma_l = math.sqrt(max(su, sv) ** 2 + np.trace(Sq) / 2)
+        half = reach * math.sqrt(var_z) + settings.z_thickness * 2 * sigma_l
         splats[k, [MX, MY]] = m
         splats[k, [C11, C12, C22]] = Wi[0, 0], Wi[0, 1], Wi[1, 1]
         splats[k, AMP] = amp
@@ -133,6 +144,12 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
     return splats, bbox, visible
+
+
+def _sym3(c):
+    """The symmetric 3x3 matrix of a 6-vector (xx, xy, xz, yy, yz, zz)."""
+    xx, xy, xz, yy, yz, zz = (float(v) for v in c)
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
 def _exponents(m, Wi, x0, x1, y0, y1):

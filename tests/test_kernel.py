@@ -35,7 +35,7 @@ def single_splat(normal=(0, 0, 1), radius=0.02, tangent=None, radius_v=None, cut
                    tangent=None if tangent is None else [tangent],
                    radius_v=None if radius_v is None else [radius_v])
     cam = cam or front_camera(128, 128)
-    settings = ds.RenderSettings(cutoff=cutoff, shading="none", exact_normalization=exact)
+    settings = ds.RenderSettings(cutoff=cutoff, shading="none", exact_normalization=exact, lod=False)
     return s, cam, ds.render(s, cam, lens, settings)
 
 
@@ -43,7 +43,7 @@ def expected_area_px(s, cam):
     """|det J| x r_u r_v: the surfel's area in pixels, from the twin's Jacobian."""
     from dofsplat.slow import project_reference
     from dofsplat.splat.project import AMP, C11, C12, C22
-    st = ds.RenderSettings(shading="none", exact_normalization=False, cutoff=30)
+    st = ds.RenderSettings(shading="none", exact_normalization=False, cutoff=30, lod=False)
     splats, _, vis = project_reference(s, s.colors, cam, None, st)
     # analytic amplitude at c = 30 is area_px / (2 pi sqrt|W|): recover area_px
     Wdet = 1.0 / (splats[0, C11] * splats[0, C22] - splats[0, C12] ** 2)

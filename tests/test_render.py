@@ -11,7 +11,7 @@ from dofsplat.surfels import concatenate
 
 from conftest import front_camera, grid_surfels
 
-UNLIT = ds.RenderSettings(shading="none")
+UNLIT = ds.RenderSettings(shading="none", lod=False)
 
 
 def interior(a, margin):
@@ -86,9 +86,9 @@ def test_half_transparent_plane_over_opaque_plane_is_over():
     front = grid_surfels(n=40, spacing=1.0 / 40, z=0.5, color=(0.9, 0.1, 0.1), opacity=0.5)
     back = grid_surfels(n=64, spacing=1.0 / 32, z=0.0, color=(0.1, 0.1, 0.9))
     bg = (0.2, 0.2, 0.2)
-    settings = ds.RenderSettings(shading="none", background=bg)
+    settings = ds.RenderSettings(shading="none", background=bg, lod=False)
     both = ds.render(concatenate([front, back]), cam, None, settings)
-    f = ds.render(front, cam, None, ds.RenderSettings(shading="none"))  # over black: premultiplied
+    f = ds.render(front, cam, None, ds.RenderSettings(shading="none", lod=False))  # over black: premultiplied
     b = ds.render(back, cam, None, settings)
     expected = f.rgb + (1 - f.alpha[..., None]) * b.rgb
     np.testing.assert_allclose(both.rgb, expected, atol=1e-5)
@@ -122,7 +122,7 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     s = random_scene(seed, elliptical=elliptical)
     cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=56, height=40, fov_y=35)
     lens = ds.ThinLens(focus_distance=3.6, aperture=aperture) if aperture else None
-    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), cull_backfaces=cull, shading=shading)
+    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), cull_backfaces=cull, shading=shading, lod=False)
     rgb = shade_surfels(s, cam, st)
     fast = project(s, rgb, cam, lens, st)
     slow = project_reference(s, rgb, cam, lens, st)
@@ -145,20 +145,22 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     np.testing.assert_allclose(res.image, img2, atol=1e-4)
 
 
-def test_image_does_not_depend_on_thread_count_or_banding():
+@pytest.mark.parametrize("lod", [False, True])
+def test_image_does_not_depend_on_thread_count_or_banding(lod):
     s = random_scene(5, n=2000)
     cam = ds.Camera(eye=(0, 0, 4), target=(0, 0, 0), width=96, height=80, fov_y=35)
     lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    st = ds.RenderSettings(lod=lod)
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        one = ds.render(s, cam, lens)
+        one = ds.render(s, cam, lens, st)
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = ds.render(s, cam, lens)
+        many = ds.render(s, cam, lens, st)
     finally:
         numba.set_num_threads(before)
     np.testing.assert_array_equal(one.image, many.image)
-    banded = ds.render(s, cam, lens, ds.RenderSettings(max_tile_pairs=200))
+    banded = ds.render(s, cam, lens, ds.RenderSettings(max_tile_pairs=200, lod=lod))
     assert banded.stats["bands"] > 2
     np.testing.assert_array_equal(banded.image, many.image)
     assert banded.stats["fragments"] == many.stats["fragments"]
@@ -180,7 +182,7 @@ def test_culling_behind_camera_and_back_faces():
                    colors=[[1, 1, 1]] * 3)
     cam = front_camera(32, 32, distance=2.0)
     assert ds.render(s, cam).stats["splats_rendered"] == 1
-    two_sided = ds.render(s, cam, None, ds.RenderSettings(cull_backfaces=False))
+    two_sided = ds.render(s, cam, None, ds.RenderSettings(cull_backfaces=False, lod=False))
     assert two_sided.stats["splats_rendered"] == 2
 
 

@@ -90,30 +90,68 @@ def circumellipse(m11, m12, m22, r):
 
 
 @shared
-def kernel_variance(j11, j12, j21, j22, su, sv, vq, v_dof):
+def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     """Screen-space variance W of the blurred resampling kernel, (w11, w12, w22).
 
     J = [[j11, j12], [j21, j22]] maps the tangent-plane axes (u, v) to pixels;
-    V^r = diag(su^2, sv^2) is the basis variance; vq is the isotropic object-space
-    low-pass filter variance of an LOD level (0 at the leaves), v_dof the DOF variance.
+    V^r = diag(su^2, sv^2) is the leaf basis variance; Q = [[q11, q12], [q12, q22]] is the
+    LOD low-pass filter in screen space, J V^{q,l} J^T (0 at the leaves); v_dof is V^I.
 
-        W = J V^r J^T + I + circumellipse(J V^q J^T, V^I)     (eq. 12 with Section 6.2)
+        W = J V^r J^T + I + circumellipse(J V^{q,l} J^T, V^I)     (eq. 12 with Section 6.2)
 
-    With vq = 0 the circumellipse is V^I itself and this is eq. 11.
+    With Q = 0 the circumellipse is V^I itself and this is eq. 11.
     """
     a11, a21 = j11 * su, j21 * su
     a12, a22 = j12 * sv, j22 * sv
     w11 = a11 * a11 + a12 * a12 + 1.0
     w12 = a11 * a21 + a12 * a22
     w22 = a21 * a21 + a22 * a22 + 1.0
-    if vq > 0.0:
-        q11 = vq * (j11 * j11 + j12 * j12)
-        q12 = vq * (j11 * j21 + j12 * j22)
-        q22 = vq * (j21 * j21 + j22 * j22)
+    if q11 > 0.0 or q22 > 0.0:
         d11, d12, d22 = circumellipse(q11, q12, q22, v_dof)
     else:
         d11, d12, d22 = v_dof, 0.0, v_dof
     return w11 + d11, w12 + d12, w22 + d22
+
+
+@shared
+def screen_lod_variance(px, py, pz, cov, view, ax, ay):
+    """J V^{q,l} J^T for a world-space filter covariance, and its camera-depth variance.
+
+    cov: 6-tuple (xx, xy, xz, yy, yz, zz) of the symmetric 3x3 world covariance; p the
+    camera-space point (pz < 0). G = dProj/dp_camera . R (R: camera_from_world rotation)
+    maps world offsets to pixels; returns (q11, q12, q22, var_depth) with Q = G cov G^T.
+    """
+    u = -pz
+    inv_u = 1.0 / u
+    # rows of dProj/dp in camera space: x: ax [1/U, 0, X/U^2]; y: -ay [0, 1/U, Y/U^2]
+    fx, fz = ax * inv_u, ax * px * inv_u * inv_u
+    gy, gz = -ay * inv_u, -ay * py * inv_u * inv_u
+    g1x = fx * view[0] + fz * view[8]
+    g1y = fx * view[1] + fz * view[9]
+    g1z = fx * view[2] + fz * view[10]
+    g2x = gy * view[4] + gz * view[8]
+    g2y = gy * view[5] + gz * view[9]
+    g2z = gy * view[6] + gz * view[10]
+    cxx, cxy, cxz, cyy, cyz, czz = cov[0], cov[1], cov[2], cov[3], cov[4], cov[5]
+    # cov . g for g = row 1, row 2, and the camera z axis (R row 3)
+    h1x = cxx * g1x + cxy * g1y + cxz * g1z
+    h1y = cxy * g1x + cyy * g1y + cyz * g1z
+    h1z = cxz * g1x + cyz * g1y + czz * g1z
+    h2x = cxx * g2x + cxy * g2y + cxz * g2z
+    h2y = cxy * g2x + cyy * g2y + cyz * g2z
+    h2z = cxz * g2x + cyz * g2y + czz * g2z
+    zx, zy, zz = view[8], view[9], view[10]
+    var_depth = (zx * (cxx * zx + cxy * zy + cxz * zz) + zy * (cxy * zx + cyy * zy + cyz * zz)
+                 + zz * (cxz * zx + cyz * zy + czz * zz))
+    return (g1x * h1x + g1y * h1y + g1z * h1z, g2x * h1x + g2y * h1y + g2z * h1z,
+            g2x * h2x + g2y * h2y + g2z * h2z, var_depth)
+
+
+@shared
+def max_eigenvalue(a11, a12, a22):
+    """Largest eigenvalue of the symmetric 2x2 matrix [[a11, a12], [a12, a22]]."""
+    half_diff = 0.5 * (a11 - a22)
+    return 0.5 * (a11 + a22) + math.sqrt(half_diff * half_diff + a12 * a12)
 
 
 @shared
@@ -147,13 +185,14 @@ def exponent(dx, dy, c11, c12, c22):
 
 @shared
 def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by, near,
-                   coc_k, inv_focus, vq, cutoff, z_margin, cull_backfaces):
+                   coc_k, inv_focus, lod_cov, cutoff, z_margin, cull_backfaces):
     """Project one surfel; everything but the kernel's pixel sum.
 
     p_world, n_world, t_world: 3-tuples (t_world = (0, 0, 0) for a circular surfel);
     ru, rv: disk radii along t and n x t (world units); area: the area the surfel stands
     for (world units^2, normalisation weight included); view: 12-tuple, rows of the 3x4
-    camera_from_world matrix.
+    camera_from_world matrix; lod_cov: 6-tuple (xx, xy, xz, yy, yz, zz), the world
+    covariance of the LOD filter V^{q,l} (zeros for a surfel).
 
     Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r): ok is False for
     a culled surfel (behind the near plane, or a back face when culling is on).
@@ -189,12 +228,17 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     # basis variance: the disk radius is the Gaussian's 2-sigma contour (surfels.py)
     su, sv = 0.5 * ru, 0.5 * rv
     coc_r = coc_radius_px(depth, coc_k, inv_focus)
-    w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, vq, dof_variance(coc_r))
+    q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
+    w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, dof_variance(coc_r))
 
-    # z-range of the basis function r_k in camera space, not enlarged by the blur (Section 6.4):
-    # the truncated disk reaches sqrt(2c) sigma along each axis; z_margin adds a thickness
+    # z-range of the basis function r_k^l in camera space, not enlarged by the blur
+    # (Section 6.4): the truncated basis reaches sqrt(2c) sigma; the level's depth variance
+    # is the leaf basis's plus the filter's (V^l = V^r + V^q, Section 5.3); z_margin adds
+    # a thickness proportional to the basis radius
     reach = math.sqrt(2.0 * cutoff)
-    half = reach * math.sqrt((su * tuz) ** 2 + (sv * tvz) ** 2) + z_margin * max(ru, rv)
+    var_z = (su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth
+    sigma_l = math.sqrt(max(su, sv) ** 2 + 0.5 * (lod_cov[0] + lod_cov[3] + lod_cov[5]))
+    half = reach * math.sqrt(var_z) + z_margin * 2.0 * sigma_l
     return True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r
 
 

@@ -32,19 +32,20 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, vq, view,
+def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
                    ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                    z_margin, cull_backfaces, exact_norm, out, bbox, visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
 
     positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
     (0, 3); ru, rv: (N,) disk radii; area: (N,) world area each surfel stands for; rgb (N, 3)
-    shaded linear colour; alpha (N,) opacity; vq: (N,) LOD filter variances or (0,);
+    shaded linear colour; alpha (N,) opacity; lod_cov: (N, 6) world covariances of the
+    LOD filter V^{q,l} (xx, xy, xz, yy, yz, zz) or (0, 6);
     view: (12,) rows of camera_from_world[:3]; the rest are scalars (see ewa.project_surfel).
     """
     n = positions.shape[0]
     elliptical = tangents.shape[0] == n
-    has_vq = vq.shape[0] == n
+    has_lod = lod_cov.shape[0] == n
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
@@ -55,10 +56,13 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, vq, v
         t = (0.0, 0.0, 0.0)
         if elliptical:
             t = (np.float64(tangents[k, 0]), np.float64(tangents[k, 1]), np.float64(tangents[k, 2]))
-        v_q = np.float64(vq[k]) if has_vq else 0.0
+        cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        if has_lod:
+            cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
+                   np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
         ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r = project_surfel(
             p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
-            ax, bx, ay, by, near, coc_k, inv_focus, v_q, cutoff, z_margin, cull_backfaces)
+            ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces)
         if not ok:
             continue
         x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)

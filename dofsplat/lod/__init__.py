@@ -1,0 +1,67 @@
+"""Level of detail as blur (paper Sections 5.3, 6.2): the hierarchy and the per-frame cut.
+
+``build_hierarchy`` makes the flat-array tree once per model (``Hierarchy.save``/``load``
+keep it on disk); ``select_splats`` picks, each frame, the coarsest nodes whose low-pass
+filter fits inside the circle of confusion, and returns them as a ``SplatSource`` for the
+ordinary projection kernel.
+"""
+
+from __future__ import annotations
+
+from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
+from .select import gather_splats, select_nodes
+
+__all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "hierarchy_for",
+           "select_splats", "select_nodes"]
+
+
+def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
+    """The hierarchy of ``surfels``, built on first use and kept on the object.
+
+    The cached tree is reused while the surfel count is unchanged; after editing a model's
+    arrays in place, build a new ``Surfels`` (or call ``build_hierarchy``).
+    """
+    tree = getattr(surfels, "_lod_hierarchy", None)
+    if tree is None or tree.n_surfels != len(surfels):
+        tree = build_hierarchy(surfels, progress=progress)
+        surfels._lod_hierarchy = tree
+    return tree
+
+
+def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
+                  cutoff: float, pixel_threshold: float, cull_backfaces: bool):
+    """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
+    import numpy as np
+
+    from ..splat.source import SplatSource
+
+    if tree.n_surfels != len(surfels):
+        raise ValueError("the hierarchy was built for a different model")
+    ax, bx, ay, by = camera.screen_coefficients()
+    near = camera.frustum_lrbtn()[4]
+    view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
+    flags = np.empty(len(tree), np.uint8)
+    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal, tree.cone,
+                 tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near, camera.width,
+                 camera.height, float(coc_k), float(inv_focus), float(cutoff),
+                 float(pixel_threshold) ** 2, bool(cull_backfaces), flags)
+    nodes = np.flatnonzero(flags)
+    n = nodes.size
+    ell = surfels.is_elliptical
+    empty = np.zeros(0, np.float32)
+    out = SplatSource(
+        positions=np.empty((n, 3), np.float32), normals=np.empty((n, 3), np.float32),
+        colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
+        tangents=np.empty((n if ell else 0, 3), np.float32), ru=np.empty(n, np.float32),
+        rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
+        lod_cov=np.empty((n, 6), np.float32), level=np.empty(n, np.int8),
+        material=surfels.material)
+    gather_splats(nodes, tree.order, tree.start, tree.count, tree.position, tree.normal,
+                  tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov, tree.level,
+                  surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
+                  surfels.tangent if ell else np.zeros((0, 3), np.float32), surfels.radius,
+                  surfels.radius_v if ell else empty,
+                  surfels.weight if surfels.weight is not None else empty, ell,
+                  surfels.weight is not None, out.positions, out.normals, out.colors,
+                  out.opacity, out.tangents, out.ru, out.rv, out.area, out.lod_cov, out.level)
+    return out

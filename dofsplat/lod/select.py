@@ -1,0 +1,237 @@
+"""Per-frame LOD selection: a cut through the hierarchy (Section 6.2).
+
+The traversal starts at the root and, at each node, either culls it (outside the view
+frustum, entirely behind the near plane, or entirely back-facing by its normal cone),
+selects it (it is splatted, its subtree is not visited), or descends to its children.
+A node is selected when
+
+* it is a leaf; or
+* its screen-space LOD blur fits inside the DOF blur everywhere in it (the DOF stop):
+      lambda_max(J V^{q,l} J^T) <= V^I(C_min),
+  where J V^{q,l} J^T is the node's low-pass filter projected at its mean position
+  (``ewa.screen_lod_variance``) and C_min the smallest circle of confusion over the
+  node's depth range.
+  Then circumellipse(J V^{q,l} J^T, V^I) = V^I: the node's resampling kernel is exactly the
+  no-LOD DOF kernel of eq. 11, rasterised from one splat instead of many (PAPER_NOTES §4);
+* or it is smaller than the pixel threshold (QSplat's stop): its level basis V^l = V^r + V^q,
+  as a disk radius 2 sigma along its largest screen axis, projects to at most
+  ``pixel_threshold`` pixels.
+
+A node whose mean normal faces away from the eye while its cone does not is never
+selected (its flat splat would be a back face): the traversal descends instead.
+
+The tree's top levels are walked serially down to ``SPLIT_DEPTH``; the subtrees below are
+walked in parallel, one explicit stack each. The result is a flag per node.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
+                         screen_lod_variance, shared, tangent_from_normal)
+
+CULL, SELECT, DESCEND = 0, 1, 2
+SPLIT_DEPTH = 10  # 1024 subtrees for the parallel walk
+STACK = 96  # the median split keeps depth <= ceil(log2 N) + 1, far below this
+# normal-cone culling costs two inverse trigonometric functions: worth it only for nodes
+# that would save a sizeable subtree (small ones are culled per surfel by the projection)
+CONE_TEST_MIN_COUNT = 32
+
+
+@shared
+def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
+               ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+               thr2, cull_backfaces):
+    """CULL, SELECT or DESCEND for node i (see the module docstring)."""
+    if count[i] == 1:
+        # a leaf is one surfel: the projection culls it exactly (near plane, back face,
+        # outside the image), so the tests below would only repeat that work
+        return SELECT
+    # bounding sphere in camera space
+    wx, wy, wz = center[i, 0], center[i, 1], center[i, 2]
+    cx = view[0] * wx + view[1] * wy + view[2] * wz + view[3]
+    cy = view[4] * wx + view[5] * wy + view[6] * wz + view[7]
+    cz = view[8] * wx + view[9] * wy + view[10] * wz + view[11]
+    u = -cz
+    rad = np.float64(bound[i])
+    if u + rad <= near:
+        return CULL  # entirely behind the near plane
+    # frustum, widened by the largest blurred kernel's reach: a blurred splat just outside
+    # the image can still reach into it
+    u_near = max(u - rad, near)
+    coc_max = max(coc_radius_px(u_near, coc_k, inv_focus), coc_radius_px(u + rad, coc_k, inv_focus))
+    margin = math.sqrt(2.0 * cutoff * (dof_variance(coc_max) + 1.0)) + 1.0
+    # the truncated basis reaches sqrt(2c)/2 disk radii from the surfel's centre
+    reach = rad * max(1.0, 0.5 * math.sqrt(2.0 * cutoff))
+    s_left = (-margin - bx) / ax
+    s_right = (width + margin - bx) / ax
+    s_bottom = (by - height - margin) / ay
+    s_top = (by + margin) / ay
+    if (cx + s_left * cz) < -reach * math.sqrt(1.0 + s_left * s_left):
+        return CULL
+    if (-cx - s_right * cz) < -reach * math.sqrt(1.0 + s_right * s_right):
+        return CULL
+    if (cy + s_bottom * cz) < -reach * math.sqrt(1.0 + s_bottom * s_bottom):
+        return CULL
+    if (-cy - s_top * cz) < -reach * math.sqrt(1.0 + s_top * s_top):
+        return CULL
+
+    nwx, nwy, nwz = normal[i, 0], normal[i, 1], normal[i, 2]
+    nx = view[0] * nwx + view[1] * nwy + view[2] * nwz
+    ny = view[4] * nwx + view[5] * nwy + view[6] * nwz
+    nz = view[8] * nwx + view[9] * nwy + view[10] * nwz
+    if cull_backfaces and count[i] >= CONE_TEST_MIN_COUNT:
+        dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if dist > rad and cone[i] < 0.5 * math.pi:
+            # every normal in the cone faces away from every point of the sphere
+            cos_a = (nx * cx + ny * cy + nz * cz) / dist
+            alpha = math.acos(min(1.0, max(-1.0, cos_a)))
+            if alpha + cone[i] + math.asin(rad / dist) < 0.5 * math.pi:
+                return CULL
+
+    # the node as a splat: its mean position and normal
+    pwx, pwy, pwz = position[i, 0], position[i, 1], position[i, 2]
+    px = view[0] * pwx + view[1] * pwy + view[2] * pwz + view[3]
+    py = view[4] * pwx + view[5] * pwy + view[6] * pwz + view[7]
+    pz = view[8] * pwx + view[9] * pwy + view[10] * pwz + view[11]
+    if -pz <= near:
+        return DESCEND
+    if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:
+        return DESCEND  # a back-facing mean: let the children decide
+    tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
+    tvx = ny * tuz - nz * tuy
+    tvy = nz * tux - nx * tuz
+    tvz = nx * tuy - ny * tux
+    j11, j21 = jacobian_column(px, py, pz, tux, tuy, tuz, ax, ay)
+    j12, j22 = jacobian_column(px, py, pz, tvx, tvy, tvz, ax, ay)
+    lam_j = max_eigenvalue(j11 * j11 + j12 * j12, j11 * j21 + j12 * j22, j21 * j21 + j22 * j22)
+    cov = (np.float64(lod_cov[i, 0]), np.float64(lod_cov[i, 1]), np.float64(lod_cov[i, 2]),
+           np.float64(lod_cov[i, 3]), np.float64(lod_cov[i, 4]), np.float64(lod_cov[i, 5]))
+    q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, cov, view, ax, ay)
+    lam_q = max_eigenvalue(q11, q12, q22)
+
+    # pixel stop: the level's basis (V^r + V^q) as a disk radius 2 sigma, in pixels
+    if 4.0 * (np.float64(sigma_r2[i]) * lam_j + lam_q) <= thr2:
+        return SELECT
+    # DOF stop: J V^q J^T inside V^I for the smallest CoC over the node's depth range
+    if coc_k > 0.0:
+        u_lo = max(u - extent[i], near)
+        u_hi = u + extent[i]
+        if inv_focus > 0.0 and u_lo <= 1.0 / inv_focus <= u_hi:
+            return DESCEND  # the focal plane runs through the node
+        coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
+        if lam_q <= dof_variance(coc_min):
+            return SELECT
+    return DESCEND
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk(root, root_depth, max_depth, count, center, bound, extent, position, normal, cone,
+          sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
+          cutoff, thr2, cull_backfaces, flags, pending, n_pending):
+    """Depth-first walk of the subtree at ``root``; nodes deeper than max_depth that need a
+    visit are appended to ``pending`` instead. Returns the new n_pending."""
+    stack = np.empty(STACK, np.int64)
+    depths = np.empty(STACK, np.int64)
+    top = 0
+    stack[0] = root
+    depths[0] = root_depth
+    top = 1
+    while top > 0:
+        top -= 1
+        i = stack[top]
+        d = depths[top]
+        if d > max_depth:
+            pending[n_pending] = i
+            n_pending += 1
+            continue
+        what = visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
+                          view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
+                          cutoff, thr2, cull_backfaces)
+        if what == SELECT:
+            flags[i] = 1
+        elif what == DESCEND:
+            m = count[i]
+            stack[top] = i + 2 * (m // 2)  # right child, visited second
+            depths[top] = d + 1
+            stack[top + 1] = i + 1
+            depths[top + 1] = d + 1
+            top += 2
+    return n_pending
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
+                 ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
+                 cull_backfaces, flags):
+    """Set flags[i] = 1 for every node of the cut, 0 elsewhere. Returns the number of nodes."""
+    flags[:] = 0
+    pending = np.empty(1 << (SPLIT_DEPTH + 1), np.int64)
+    n_pending = _walk(0, 0, SPLIT_DEPTH - 1, count, center, bound, extent, position, normal, cone,
+                      sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
+                      inv_focus, cutoff, thr2, cull_backfaces, flags, pending, 0)
+    dummy = np.empty(1, np.int64)
+    for t in numba.prange(n_pending):
+        _walk(pending[t], 0, STACK, count, center, bound, extent, position, normal, cone, sigma_r2,
+              lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
+              cull_backfaces, flags, dummy, 0)
+    n = 0
+    for i in range(flags.shape[0]):
+        n += flags[i]
+    return n
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def gather_splats(nodes, order, start, count, position, normal, color, opacity, area,
+                  sigma_r2, lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                  s_weight, elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha,
+                  out_tan, out_ru, out_rv, out_area, out_cov, out_level):
+    """Fill the splat arrays (one row per selected node) from the tree and the surfels.
+
+    A leaf is its surfel, unchanged; an inner node is a circular splat at its mean position
+    with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter.
+    """
+    for t in numba.prange(nodes.shape[0]):
+        i = nodes[t]
+        if count[i] == 1:
+            k = order[start[i]]
+            for d in range(3):
+                out_pos[t, d] = s_pos[k, d]
+                out_nrm[t, d] = s_nrm[k, d]
+                out_col[t, d] = s_col[k, d]
+            out_alpha[t] = s_alpha[k]
+            ru = s_ru[k]
+            rv = ru
+            if elliptical:
+                rv = s_rv[k]
+                for d in range(3):
+                    out_tan[t, d] = s_tan[k, d]
+            a = ru * rv
+            if has_weight:
+                a *= s_weight[k]
+            out_ru[t] = ru
+            out_rv[t] = rv
+            out_area[t] = a
+            for d in range(6):
+                out_cov[t, d] = 0.0
+            out_level[t] = 0
+        else:
+            for d in range(3):
+                out_pos[t, d] = position[i, d]
+                out_nrm[t, d] = normal[i, d]
+                out_col[t, d] = color[i, d]
+            out_alpha[t] = opacity[i]
+            r = 2.0 * math.sqrt(sigma_r2[i])
+            out_ru[t] = r
+            out_rv[t] = r
+            if elliptical:
+                for d in range(3):
+                    out_tan[t, d] = 0.0  # derive the tangent from the normal
+            out_area[t] = area[i]
+            for d in range(6):
+                out_cov[t, d] = lod_cov[i, d]
+            out_level[t] = level[i]
