@@ -1,0 +1,280 @@
+"""Level of detail as blur (Sections 5.3, 6.2): the hierarchy, the cut, and the images."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import dofsplat as ds
+from dofsplat.demo import textured_plane
+from dofsplat.lod import Hierarchy, build_hierarchy, select_splats
+from dofsplat.render import project, shade_surfels
+from dofsplat.slow import project_reference
+
+from conftest import front_camera, grid_surfels
+
+LN4 = math.log(4.0)
+
+
+def psnr(a, b):
+    mse = float(np.mean((a[..., :3].astype(np.float64) - b[..., :3]) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
+
+
+def bumpy_surfels(seed=0, n=3000):
+    """Irregular samples of a wavy sheet, with varied radii, colours, weights and opacity."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, (n, 2))
+    z = 0.2 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+    dzdx = 0.6 * np.cos(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])
+    dzdy = -0.4 * np.sin(3 * xy[:, 0]) * np.sin(2 * xy[:, 1])
+    nrm = np.stack([-dzdx, -dzdy, np.ones(n)], axis=1)
+    return ds.Surfels(positions=np.column_stack([xy, z]), normals=nrm,
+                      radius=rng.uniform(0.02, 0.06, n), colors=rng.uniform(0, 1, (n, 3)),
+                      opacity=rng.uniform(0.5, 1, n), weight=rng.uniform(0.8, 1.2, n))
+
+
+@pytest.fixture(scope="module")
+def bumpy():
+    s = bumpy_surfels()
+    return s, build_hierarchy(s)
+
+
+def leaves_of(tree, i):
+    return tree.order[tree.start[i]:tree.start[i] + tree.count[i]]
+
+
+# -- the hierarchy -------------------------------------------------------------------------
+
+
+def test_every_surfel_sits_in_exactly_one_leaf(bumpy):
+    s, tree = bumpy
+    n = len(s)
+    assert len(tree) == 2 * n - 1
+    leaf = tree.count == 1
+    assert leaf.sum() == n
+    np.testing.assert_array_equal(np.sort(tree.order[tree.start[leaf]]), np.arange(n))
+    # preorder layout: children cover the parent's range, split in two
+    for i in np.flatnonzero(~leaf)[::37]:
+        left, right = tree.children(i)
+        assert tree.start[left] == tree.start[i]
+        assert tree.start[right] == tree.start[i] + tree.count[left]
+        assert tree.count[left] + tree.count[right] == tree.count[i]
+    assert tree.depth == math.ceil(math.log2(n)) + 1  # median splits: balanced
+
+
+def test_spheres_nest_and_contain_their_disks(bumpy):
+    s, tree = bumpy
+    c = tree.center.astype(np.float64)
+    for i in np.flatnonzero(tree.count > 1):
+        for ch in tree.children(i):
+            d = np.linalg.norm(c[ch] - c[i])
+            assert d + tree.bound[ch] <= tree.bound[i] * (1 + 1e-6)
+    rng = np.random.default_rng(1)
+    for i in rng.choice(np.flatnonzero(tree.count > 1), 60, replace=False):
+        k = leaves_of(tree, i)
+        reach = np.linalg.norm(s.positions[k] - c[i], axis=1) + s.radius[k]
+        assert reach.max() <= tree.extent[i] * (1 + 1e-5) <= tree.bound[i] * (1 + 2e-5)
+        # the normal cone contains every surfel normal under the node
+        a, b = s.normals[k].astype(np.float64), tree.normal[i].astype(np.float64)
+        angles = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), a @ b)
+        assert np.all(angles <= tree.cone[i] + 1e-4)  # float32 normals: ~1e-5 rad
+
+
+def test_prefiltered_attributes_are_area_weighted_means(bumpy):
+    s, tree = bumpy
+    area = s.radius ** 2 * s.weight
+    rng = np.random.default_rng(2)
+    for i in rng.choice(np.flatnonzero(tree.count > 1), 80, replace=False):
+        k = leaves_of(tree, i)
+        w = area[k] / area[k].sum()
+        np.testing.assert_allclose(tree.color[i], w @ s.colors[k], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(tree.opacity[i], w @ s.opacity[k], rtol=1e-5)
+        np.testing.assert_allclose(tree.position[i], w @ s.positions[k], rtol=1e-5, atol=1e-6)
+        assert tree.area[i] == pytest.approx(area[k].sum(), rel=1e-5)
+        # V^{q,l} = 3 x the area-weighted covariance of the surfel positions
+        d = s.positions[k].astype(np.float64) - w @ s.positions[k]
+        cov = 3 * (d * w[:, None]).T @ d
+        got = tree.lod_cov[i]
+        np.testing.assert_allclose(got, cov[[0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]],
+                                   rtol=1e-4, atol=1e-6 * np.abs(cov).max())
+        g = s.radius[k].astype(np.float64) ** 2
+        assert tree.sigma_r2[i] == pytest.approx((g @ g) / (4 * g.sum()), rel=1e-5)
+    leaf = np.flatnonzero(tree.count == 1)
+    assert np.all(tree.lod_cov[leaf] == 0) and np.all(tree.level[leaf] == 0)
+
+
+def test_grid_node_filter_is_the_leaf_rule_at_the_node_extent():
+    """m x m grid leaves of spacing h: V^r + V^q = (m h)^2 / 4 along each grid axis."""
+    h = 0.01
+    s = grid_surfels(n=16, spacing=h)  # 256 surfels: a root of 16 x 16, children 8 x 16, ...
+    tree = build_hierarchy(s)
+    for i, (mx, my) in [(0, (16, 16)), (1, (8, 16))]:
+        cov = tree.lod_cov[i]
+        ext = sorted([cov[0], cov[3]])
+        want = sorted([((mx * h) ** 2 - h * h) / 4, ((my * h) ** 2 - h * h) / 4])
+        np.testing.assert_allclose(ext, want, rtol=1e-4)
+        assert tree.sigma_r2[i] == pytest.approx(h * h / 4, rel=1e-5)
+
+
+def test_build_handles_duplicates_and_a_single_surfel():
+    s = ds.Surfels(positions=np.zeros((1000, 3)), normals=np.tile([0, 0, 1.0], (1000, 1)),
+                   radius=np.full(1000, 0.1), colors=np.full((1000, 3), 0.5))
+    tree = build_hierarchy(s)  # all positions equal: quickselect must not degrade or fail
+    np.testing.assert_array_equal(np.sort(tree.order), np.arange(1000))
+    one = build_hierarchy(s.subset([0]))
+    assert len(one) == 1 and one.count[0] == 1
+
+
+def test_save_load_and_invalidation(tmp_path, bumpy):
+    s, tree = bumpy
+    path = tree.save(tmp_path / "m.lod.npz")
+    back = Hierarchy.load(path, s)
+    assert back is not None and back.fingerprint == tree.fingerprint
+    for name in ("order", "count", "center", "bound", "lod_cov", "color", "level"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(tree, name))
+    changed = replace(s, colors=s.colors.copy())
+    changed.colors[5, 0] = 0.123
+    assert Hierarchy.load(path, changed) is None  # a changed model invalidates the file
+    (tmp_path / "bad.npz").write_bytes(b"not an npz file")
+    with pytest.raises(ds.DofsplatError, match="not a dofsplat LOD file"):
+        Hierarchy.load(tmp_path / "bad.npz", s)
+    assert Hierarchy.load(tmp_path / "missing.npz", s) is None
+
+
+# -- the per-frame cut ---------------------------------------------------------------------
+
+
+def _projected_lod_variance(tree, i, cam):
+    """lambda_max of J V^q J^T at node i, in plain matrix form (the twin of the kernel's)."""
+    view = cam.camera_from_world()
+    p = view[:3, :3] @ tree.position[i] + view[:3, 3]
+    ax, _, ay, _ = cam.screen_coefficients()
+    u = -p[2]
+    d_proj = np.array([[ax / u, 0, ax * p[0] / u ** 2], [0, -ay / u, -ay * p[1] / u ** 2]])
+    g = d_proj @ view[:3, :3]
+    c = tree.lod_cov[i].astype(np.float64)
+    cov = np.array([[c[0], c[1], c[2]], [c[1], c[3], c[4]], [c[2], c[4], c[5]]])
+    return np.linalg.eigvalsh(g @ cov @ g.T).max(), u
+
+
+def test_cut_is_a_valid_coarsest_cut(bumpy):
+    """Selected nodes are disjoint, each satisfies a stop rule, and no parent already did."""
+    s, tree = bumpy
+    cam = ds.Camera(eye=(0.4, -1.2, 2.0), target=(0, 0, 0), width=160, height=120, fov_y=50)
+    lens = ds.ThinLens(focus_distance=1.6, aperture=0.25)
+    coc_k, inv_p = lens.coc_coefficients(cam)
+    from dofsplat.lod.select import select_nodes
+
+    ax, bx, ay, by = cam.screen_coefficients()
+    flags = np.empty(len(tree), np.uint8)
+    view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
+    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal,
+                 tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, 0.01, 160, 120,
+                 coc_k, inv_p, 2.5, 0.0, True, flags)
+    chosen = np.flatnonzero(flags)
+    inner = chosen[tree.count[chosen] > 1]
+    assert inner.size > 20  # the blur lets the cut stop above the leaves
+    covered = np.zeros(len(s), int)
+    for i in chosen:
+        covered[leaves_of(tree, i)] += 1
+    assert covered.max() == 1  # disjoint
+
+    view4 = cam.camera_from_world()
+
+    def dof_stop(i):
+        lam, _ = _projected_lod_variance(tree, i, cam)
+        u = -(view4[2, :3] @ tree.center[i] + view4[2, 3])  # the sphere's depth range
+        lo, hi = max(u - tree.extent[i], 0.01), u + tree.extent[i]
+        if lo <= 1 / inv_p <= hi:
+            return False
+        c_min = coc_k * min(abs(1 / lo - inv_p), abs(1 / hi - inv_p))
+        return lam <= c_min ** 2 / (2 * LN4) * (1 + 1e-6)
+
+    for i in inner:
+        assert dof_stop(i)
+    parents = {}
+    for i in np.flatnonzero(tree.count > 1):
+        for ch in tree.children(i):
+            parents[ch] = i
+    for i in chosen[::7]:
+        j = parents.get(i)
+        while j is not None:  # every ancestor failed the stop rules (or faced away)
+            assert not dof_stop(j) or tree.normal[j] @ (tree.position[j] - cam.eye) >= 0
+            j = parents.get(j)
+    # the surfels left out are outside the image or facing away (checked on the projection)
+    left_out = np.flatnonzero(covered == 0)
+    full = ds.render(s.subset(left_out), cam, lens, ds.RenderSettings(lod=False)) if left_out.size else None
+    assert full is None or full.stats["splats_rendered"] == 0
+
+
+@pytest.fixture(scope="module")
+def plane_view():
+    s = textured_plane(256)
+    cam = ds.Camera(eye=(0.0, 1.2, 3.2), target=(0.0, 0.0, -0.5), width=256, height=256, fov_y=45)
+    return s, cam
+
+
+def test_pinhole_lod_equals_the_full_render(plane_view):
+    """Aperture 0, pixel threshold under a pixel: the cut is (nearly) the leaves."""
+    s, cam = plane_view
+    full = ds.render(s, cam, None, ds.RenderSettings(lod=False))
+    lod = ds.render(s, cam, None, ds.RenderSettings(lod=True, lod_pixel_threshold=0.75))
+    # measured: inf (the 256^2 plane projects to > 0.75 px per surfel everywhere)
+    assert psnr(lod.image, full.image) > 60
+    # a threshold of several pixels merges surfels and blurs: the test can tell
+    coarse = ds.render(s, cam, None, ds.RenderSettings(lod=True, lod_pixel_threshold=6.0))
+    assert coarse.stats["splats_rendered"] < 0.5 * full.stats["splats_rendered"]
+    assert psnr(coarse.image, full.image) < 45  # measured 39.5 dB
+
+
+def test_points_fall_with_the_aperture_and_quality_holds(plane_view):
+    s, cam = plane_view
+    pts, last = [], None
+    for aperture in (0.0, 0.05, 0.1, 0.2, 0.4):
+        lens = ds.ThinLens(focus_distance=3.0, aperture=aperture) if aperture else None
+        lod = ds.render(s, cam, lens, ds.RenderSettings(lod=True))
+        pts.append(lod.stats["splats_rendered"])
+        if aperture:
+            full = ds.render(s, cam, lens, ds.RenderSettings(lod=False))
+            # measured 52.5-70 dB on this plane (256^2 surfels, 256^2 px): 45 dB leaves margin
+            assert psnr(lod.image, full.image) > 45, aperture
+            last = (lod, full)
+    assert all(a > b for a, b in zip(pts, pts[1:])), pts
+    lod, full = last
+    assert lod.stats["fragments"] < full.stats["fragments"] / 10
+
+
+def test_node_splats_equal_the_numpy_twin(bumpy):
+    """Projection of an LOD cut (anisotropic V^q through circumellipse) against slow.py."""
+    s, tree = bumpy
+    cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
+    lens = ds.ThinLens(focus_distance=1.5, aperture=0.3)
+    st = ds.RenderSettings()
+    src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
+    inner = src.level > 0
+    assert inner.sum() > 20
+    as_surfels = ds.Surfels(positions=src.positions, normals=src.normals, radius=src.ru,
+                            colors=src.colors, opacity=src.opacity,
+                            weight=src.area / (src.ru * src.rv))
+    rgb = shade_surfels(src, cam, st)
+    fast = project(src, rgb, cam, lens, st)
+    slow = project_reference(as_surfels, rgb, cam, lens, st, lod_cov=src.lod_cov)
+    np.testing.assert_array_equal(fast[2], slow[2])
+    vis = fast[2]
+    np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=2e-4, atol=1e-6)
+
+
+def test_show_lod_colours_splats_by_level(plane_view):
+    s, cam = plane_view
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    res = ds.render(s, cam, lens, ds.RenderSettings(show_lod=True, shading="none"))
+    from dofsplat.render import LOD_PALETTE
+    seen = res.rgb[res.alpha > 0.999].reshape(-1, 3)
+    # mostly pure palette colours (mixtures only where levels meet)
+    d = np.abs(seen[:, None, :] - LOD_PALETTE[None]).max(axis=2).min(axis=1)
+    assert np.mean(d < 0.02) > 0.5
+    assert len({tuple(np.round(c, 2)) for c in seen[d < 0.02]}) >= 3  # several levels
+    with pytest.raises(ds.DofsplatError, match="show_lod needs lod"):
+        ds.RenderSettings(show_lod=True, lod=False)
