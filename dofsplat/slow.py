@@ -30,6 +30,14 @@ def circumellipse_eig(m, r):
     return vec @ np.diag(np.maximum(lam, r)) @ vec.T
 
 
+def circumellipse_general_eig(a, b):
+    """Variance containing the ellipses a and b: b^(1/2) clamp(b^-1/2 a b^-1/2, 1) b^(1/2)."""
+    lam, vec = np.linalg.eigh(np.asarray(b, np.float64))
+    root = vec @ np.diag(np.sqrt(lam)) @ vec.T
+    inv_root = vec @ np.diag(1 / np.sqrt(lam)) @ vec.T
+    return root @ circumellipse_eig(inv_root @ a @ inv_root, 1.0) @ root
+
+
 def circumellipse_appendix(A, B, C, r):
     """Appendix A as printed: M = [[A, B/2], [B/2, C]], circle R = r. Returns (A'', B'', C'').
 
@@ -107,7 +115,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         G = d_proj @ rot
         Q = G @ Sq @ G.T
         if np.any(Q != 0):
-            blur = circumellipse_eig(Q, v_dof)
+            blur = circumellipse_general_eig(Q, v_dof * np.eye(2) + Q / 3 + 1e-9 * np.eye(2))
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur

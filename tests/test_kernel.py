@@ -123,3 +123,24 @@ def test_circumellipse_limits():
     np.testing.assert_allclose(ewa.circumellipse(2.0, 0.5, 1.0, small), (2.0, 0.5, 1.0), atol=1e-12)
     np.testing.assert_allclose(ewa.circumellipse(3.0, 0.0, 3.0, 1.0), (3.0, 0.0, 3.0))
     assert np.linalg.eigvalsh(M).min() > small
+
+
+def test_general_circumellipse_contains_both_and_reduces_to_appendix():
+    from dofsplat.slow import circumellipse_general_eig
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        A, B = _random_spd(rng), _random_spd(rng)
+        out = np.array(ewa.circumellipse_general(A[0, 0], A[0, 1], A[1, 1], B[0, 0], B[0, 1], B[1, 1]))
+        D = np.array([[out[0], out[1]], [out[1], out[2]]])
+        scale = np.abs(D).max()
+        assert np.linalg.eigvalsh(D - A).min() > -1e-9 * scale
+        assert np.linalg.eigvalsh(D - B).min() > -1e-9 * scale
+        np.testing.assert_allclose(D, circumellipse_general_eig(A, B), rtol=1e-7, atol=1e-9 * scale)
+        # a circle as B: Appendix A's circumellipse
+        r = rng.uniform(0.01, 20)
+        np.testing.assert_allclose(ewa.circumellipse_general(A[0, 0], A[0, 1], A[1, 1], r, 0.0, r),
+                                   ewa.circumellipse(A[0, 0], A[0, 1], A[1, 1], r),
+                                   rtol=1e-9, atol=1e-9 * max(r, np.abs(A).max()))
+    # B containing A returns B; A containing B returns A
+    np.testing.assert_allclose(ewa.circumellipse_general(1.0, 0.2, 0.5, 4.0, 0.1, 3.0), (4.0, 0.1, 3.0), rtol=1e-12)
+    np.testing.assert_allclose(ewa.circumellipse_general(4.0, 0.1, 3.0, 1.0, 0.2, 0.5), (4.0, 0.1, 3.0), rtol=1e-12)

@@ -90,6 +90,28 @@ def circumellipse(m11, m12, m22, r):
 
 
 @shared
+def circumellipse_general(a11, a12, a22, b11, b12, b22):
+    """Variance containing both ellipses A and B (B positive definite): circumellipse in B's frame.
+
+    With B = L L^T (Cholesky), M = L^-1 A L^-T has its eigenvalues clamped from below by 1
+    (the circle case of Appendix A) and the result is mapped back, L clamp(M) L^T. When B
+    is a circle r I this is exactly ``circumellipse(A, r)``.
+    """
+    l11 = math.sqrt(b11)
+    l21 = b12 / l11
+    l22 = math.sqrt(max(b22 - l21 * l21, 1e-300))
+    # M = L^-1 A L^-T with L^-1 = [[1/l11, 0], [-l21/(l11 l22), 1/l22]]
+    i11, i21, i22 = 1.0 / l11, -l21 / (l11 * l22), 1.0 / l22
+    m11 = i11 * i11 * a11
+    m12 = i11 * (i21 * a11 + i22 * a12)
+    m22 = i21 * i21 * a11 + 2.0 * i21 * i22 * a12 + i22 * i22 * a22
+    n11, n12, n22 = circumellipse(m11, m12, m22, 1.0)
+    # L N L^T
+    return (l11 * l11 * n11, l11 * (l21 * n11 + l22 * n12),
+            l21 * l21 * n11 + 2.0 * l21 * l22 * n12 + l22 * l22 * n22)
+
+
+@shared
 def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     """Screen-space variance W of the blurred resampling kernel, (w11, w12, w22).
 
@@ -97,9 +119,14 @@ def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     V^r = diag(su^2, sv^2) is the leaf basis variance; Q = [[q11, q12], [q12, q22]] is the
     LOD low-pass filter in screen space, J V^{q,l} J^T (0 at the leaves); v_dof is V^I.
 
-        W = J V^r J^T + I + circumellipse(J V^{q,l} J^T, V^I)     (eq. 12 with Section 6.2)
+        W = J V^r J^T + I + circumellipse(J V^{q,l} J^T, V^I + Q/3)     (eq. 12, Section 6.2)
 
-    With Q = 0 the circumellipse is V^I itself and this is eq. 11.
+    With Q = 0 this is eq. 11. For a node, Q/3 is the spread of its surfels about its mean
+    position (hierarchy.py: V^q is 3 x their covariance), so V^I + Q/3 is the blur that the
+    node's surfels, splatted one by one, would show (moment matching: without it, a node
+    blurs less than its surfels would, and edges come out too sharp); the circumellipse
+    keeps the blur at least the level's filter, which covers the space between nodes
+    (docs/maths.md, "Level of detail").
     """
     a11, a21 = j11 * su, j21 * su
     a12, a22 = j12 * sv, j22 * sv
@@ -107,7 +134,9 @@ def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     w12 = a11 * a21 + a12 * a22
     w22 = a21 * a21 + a22 * a22 + 1.0
     if q11 > 0.0 or q22 > 0.0:
-        d11, d12, d22 = circumellipse(q11, q12, q22, v_dof)
+        # 1e-9: keeps B positive definite for a node that projects to a line at focus
+        b11, b12, b22 = v_dof + q11 / 3.0 + 1e-9, q12 / 3.0, v_dof + q22 / 3.0 + 1e-9
+        d11, d12, d22 = circumellipse_general(q11, q12, q22, b11, b12, b22)
     else:
         d11, d12, d22 = v_dof, 0.0, v_dof
     return w11 + d11, w12 + d12, w22 + d22
