@@ -2,7 +2,8 @@
 
 Reports #FRAG (thousands), #PTS (splats rendered) and milliseconds per frame (median of
 --repeat frames after a warm-up frame, so JIT compilation is excluded), plus the time per
-stage. No LOD yet: the fragment count, and the time, grow with the aperture.
+stage. Without LOD (``RenderSettings(lod=False)``): the fragment count, and the time, grow
+with the aperture; ``bench/table1.py`` compares with LOD.
 
     python bench/bench_plane.py            # prints a markdown table
     python bench/bench_plane.py --repeat 9
@@ -42,7 +43,7 @@ def main(argv=None):
                     help="normalise kernels by 1 - e^-c (the paper) instead of their pixel sums")
     args = ap.parse_args(argv)
     surfels, camera, lens = plane_scene(512, 512)
-    settings = ds.RenderSettings(cutoff=2.5, exact_normalization=not args.analytic)
+    settings = ds.RenderSettings(cutoff=2.5, exact_normalization=not args.analytic, lod=False)
     xy, depth = camera.project(surfels.positions)
     in_view = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < 512) & (xy[:, 1] >= 0) & (xy[:, 1] < 512)
     depth_in_view = depth[in_view]
