@@ -2,6 +2,12 @@
 
     dofsplat render MODEL.ply -o OUT.png [camera, lens and rendering options]
     dofsplat demo [-o demo.png] [the same options; the scene supplies the defaults]
+    dofsplat reference (MODEL.ply | --demo) [-o reference.png] [--samples N] [the same options]
+    dofsplat compare A B [--diff DIFF.png] [--json FILE.json]
+
+``render`` and ``demo`` take ``--method ours|postfilter`` (our DOF, or the post-process
+baseline of :mod:`dofsplat.postfilter`); ``reference`` averages pinhole renders over the
+lens (:mod:`dofsplat.reference`); ``compare`` prints PSNR and SSIM (:mod:`dofsplat.metrics`).
 
 A command runs in this order, so that a user mistake costs no rendering time and leaves no
 file behind: parse and check the arguments, check the output paths, load the model (or
@@ -46,6 +52,9 @@ examples:
   dofsplat render scan.ply -o scan.png --focus-at 256 300
   dofsplat render scan.ply -o scan.exr --focal-length 0.05 --f-number 1.4 --focus 2.5
   dofsplat render scan.ply -o scan.png --depth scan-depth.npy --stats scan.json
+  dofsplat demo --method postfilter -o postfilter.png
+  dofsplat reference --demo -o reference.png --samples 200
+  dofsplat compare demo.png reference.png --diff diff.png
 """
 
 
@@ -76,7 +85,13 @@ def run_render(args) -> int:
 
     _check_arguments(args)
     outputs = _check_outputs(args)
-    surfels = load(args.input)
+    surfels = load(args.input, **_loader_options(args))
+    if args.lod:
+        from .lod.cache import cached_hierarchy
+
+        log = None if args.quiet else (lambda m: print(f"dofsplat: {m}", file=sys.stderr))
+        cached_hierarchy(surfels, args.lod_cache, progress=not args.quiet and sys.stderr.isatty(),
+                         log=log)
     lo, hi = surfels.bounds()
     half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
     width, height = args.size or DEFAULT_SIZE["render"]
@@ -103,11 +118,66 @@ def run_demo(args) -> int:
                              default_aperture=scene_lens.diameter)
 
 
+def run_reference(args) -> int:
+    """``dofsplat reference``: the multisample reference of a model, or of the demo scene."""
+    if (args.input is None) == (not args.demo):
+        raise DofsplatError("give either a model file or --demo (the built-in scene), "
+                            "not both" if args.demo else
+                            "give a model file to render, or --demo for the built-in scene")
+    # every lens sample is a full-resolution pinhole render: no LOD hierarchy to build
+    if getattr(args, "show_lod", False):
+        raise DofsplatError("--show-lod does not apply to the reference, whose lens samples "
+                            "are full-resolution pinhole renders")
+    args.lod = False
+    return run_demo(args) if args.demo else run_render(args)
+
+
+def run_compare(args) -> int:
+    """``dofsplat compare``: PSNR and SSIM between two images; a difference image on request."""
+    import json
+
+    from .io import atomic_write, check_output_path, check_writable_path, read_image
+    from .metrics import compare, write_difference
+
+    outputs = {}
+    if args.diff is not None:
+        outputs["diff"] = check_output_path(args.diff)
+    if args.json is not None:
+        outputs["json"] = check_writable_path(args.json, "a file name for --json")
+    inputs = {Path(args.a).resolve(), Path(args.b).resolve()}
+    for role, path in outputs.items():
+        if path.resolve() in inputs:
+            raise DofsplatError(f"the --{role} output {path} would overwrite an input image")
+    if "diff" in outputs and "json" in outputs and outputs["diff"].resolve() == outputs["json"].resolve():
+        raise DofsplatError(f"--diff and --json name the same file: {outputs['diff']}")
+
+    a, b = read_image(args.a), read_image(args.b)
+    if a.shape[:2] != b.shape[:2]:
+        raise DofsplatError(f"the images differ in size: {args.a} is {a.shape[1]}x{a.shape[0]} "
+                            f"pixels, {args.b} is {b.shape[1]}x{b.shape[0]}")
+    result = compare(a, b, space=args.space)
+
+    if "diff" in outputs:
+        write_difference(outputs["diff"], a, b, gain=args.gain, space=args.space)
+    if "json" in outputs:
+        identical = math.isinf(result["psnr"])
+        record = {"a": str(args.a), "b": str(args.b), "width": int(a.shape[1]),
+                  "height": int(a.shape[0]), "space": result["space"],
+                  "psnr_db": None if identical else result["psnr"],  # null: identical, PSNR inf
+                  "identical": identical, "ssim": result["ssim"], "mse": result["mse"]}
+        text = json.dumps(record, indent=2) + "\n"
+        atomic_write(outputs["json"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    print(f"PSNR {result['psnr']:.2f} dB  SSIM {result['ssim']:.4f}")
+    if outputs and not args.quiet:
+        print(f"wrote {', '.join(str(p) for p in outputs.values())}", file=sys.stderr)
+    return EXIT_OK
+
+
 def _render_and_write(args, outputs, surfels, camera, default_focus: float,
                       default_aperture: float) -> int:
     """The part both commands share: lens, settings, autofocus, render, outputs."""
     from .io import write_depth, write_image
-    from .render import focus_distance_at, render
+    from .render import focus_distance_at
 
     settings = _settings(args)
     lens, focus_source = None, None
@@ -121,7 +191,7 @@ def _render_and_write(args, outputs, surfels, camera, default_focus: float,
             focus, focus_source = default_focus, "default"
         lens = _lens(args, focus, default_aperture)
 
-    result = render(surfels, camera, lens, settings)
+    result = _render_by_method(args, surfels, camera, lens, settings)
 
     write_image(outputs["image"], result.image, depth=result.depth)
     if "depth" in outputs:
@@ -132,6 +202,22 @@ def _render_and_write(args, outputs, surfels, camera, default_focus: float,
     if not args.quiet:
         print(_summary(list(outputs.values()), result.stats), file=sys.stderr)
     return EXIT_OK
+
+
+def _render_by_method(args, surfels, camera, lens, settings):
+    """Our DOF render, the post-process baseline, or the multisample reference."""
+    from .render import render
+
+    if args.method == "postfilter":
+        from .postfilter import render_postfilter
+
+        return render_postfilter(surfels, camera, lens, settings)
+    if args.method == "reference":
+        from .reference import render_reference
+
+        return render_reference(surfels, camera, lens, settings, samples=args.samples,
+                                progress=not args.quiet)
+    return render(surfels, camera, lens, settings)
 
 
 # -- camera, lens, settings --------------------------------------------------------------
@@ -176,8 +262,12 @@ def _settings(args):
     background = (0.0, 0.0, 0.0)
     if args.background is not None:
         background = tuple(float(c) for c in srgb_to_linear(args.background))
+    if args.show_lod and not args.lod:
+        raise DofsplatError("--show-lod needs the hierarchy: drop --no-lod")
     return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof, shading=args.shading,
-                          background=background, cull_backfaces=not args.no_cull)
+                          background=background, cull_backfaces=not args.no_cull,
+                          lod=args.lod, lod_pixel_threshold=args.lod_threshold,
+                          show_lod=args.show_lod)
 
 
 def _check_arguments(args) -> None:
@@ -198,7 +288,8 @@ def _check_arguments(args) -> None:
             raise DofsplatError(f"--frustum needs L < R, B < T and N > 0, got "
                                 f"{' '.join(f'{v:g}' for v in args.frustum)}")
     if args.focus_at is not None:
-        width, height = args.size or DEFAULT_SIZE[args.command]
+        scene = "demo" if args.command == "demo" or getattr(args, "demo", False) else "render"
+        width, height = args.size or DEFAULT_SIZE[scene]
         x, y = args.focus_at
         if not (0 <= x < width and 0 <= y < height):
             raise DofsplatError(f"--focus-at pixel ({x:g}, {y:g}) lies outside the "
@@ -236,6 +327,7 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
 
     left, right, bottom, top, near = camera.frustum_lrbtn()
     record = dict(result.stats)
+    record["method"] = args.method  # ours, postfilter or reference
     record["camera"] = {
         "eye": list(camera.eye), "target": list(camera.target), "up": list(camera.up),
         "width": camera.width, "height": camera.height,
@@ -254,6 +346,8 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "cutoff": settings.cutoff, "dof": settings.dof, "shading": settings.shading,
         "background_linear": list(settings.background),
         "cull_backfaces": settings.cull_backfaces,
+        "lod": settings.lod, "lod_pixel_threshold": settings.lod_pixel_threshold,
+        "show_lod": settings.show_lod,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}
@@ -266,9 +360,10 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
 
 def _summary(paths: list[Path], stats: dict) -> str:
     """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``"""
+    samples = f"{stats['samples']} lens samples, " if "samples" in stats else ""
     return (f"wrote {', '.join(str(p) for p in paths)} ({stats['width']}x{stats['height']}, "
             f"{stats['points_in']:,} points, {stats['splats_rendered']:,} splats, "
-            f"{_count(stats['fragments'])} fragments, {stats['total_ms'] / 1000:.2f} s)")
+            f"{samples}{_count(stats['fragments'])} fragments, {stats['total_ms'] / 1000:.2f} s)")
 
 
 def _count(n: int) -> str:
@@ -318,17 +413,18 @@ def build_parser() -> argparse.ArgumentParser:
     render = commands.add_parser(
         "render", allow_abbrev=False, epilog=_EPILOG,
         formatter_class=_HelpFormatter,
-        help="render a surfel model file (.ply, .ply.gz)",
-        description="Render a surfel model with depth of field. Without camera options the "
+        help="render a model file: surfels, points, a mesh or Gaussian splats",
+        description="Render a model with depth of field. Without camera options the "
                     "model is framed from its +z side, focused on its centre, with a lens "
                     f"diameter of {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of its "
                     "bounding box.")
     render.add_argument("input", metavar="INPUT",
-                        help="surfel model: a PLY file (.ply or .ply.gz) with x y z, nx ny nz "
-                             "and radius per vertex")
+                        help="model file: surfels, points, a mesh or 3D Gaussian splats: "
+                             + ", ".join(_MODEL_EXTENSIONS) + " (docs/formats.md)")
     render.add_argument("-o", "--output", metavar="OUTPUT", required=True,
                         help="image to write: .png (8-bit sRGB), .npy (float32 linear RGBA, "
                              "H x W x 4) or .exr (float32 linear RGBA + Z)")
+    _add_input_options(render)
     _add_view_options(render, "render")
     render.set_defaults(run=run_render)
 
@@ -346,6 +442,52 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view_options(demo, "demo")
     demo.set_defaults(run=run_demo)
 
+    reference = commands.add_parser(
+        "reference", allow_abbrev=False, epilog=_EPILOG,
+        formatter_class=_HelpFormatter,
+        help="the multisample reference: pinhole renders over the lens, averaged",
+        description="Render the ground truth that depth of field approximates: N pinhole "
+                    "images seen from points spread over the lens, each with its frustum "
+                    "sheared so that the focal plane stays fixed, averaged (the paper's "
+                    "multisampling reference; it takes N times as long as a pinhole render). "
+                    "Takes a model file like 'render', or --demo for the built-in scene, and "
+                    "the same camera and lens options, so that 'dofsplat compare' can set "
+                    "the two images side by side.")
+    reference.add_argument("input", metavar="INPUT", nargs="?",
+                           help="model file, as for 'render' (or give --demo)")
+    reference.add_argument("--demo", action="store_true",
+                           help="render the built-in demo scene, with its camera and lens")
+    reference.add_argument("-o", "--output", metavar="OUTPUT", default="reference.png",
+                           help="image to write: .png, .npy or .exr (default: reference.png)")
+    reference.add_argument("--samples", metavar="N", type=_positive_int, default=200,
+                           help="number of lens samples (default: 200, as in the paper)")
+    _add_input_options(reference)
+    _add_view_options(reference, "reference")
+    reference.set_defaults(run=run_reference, method="reference")
+
+    compare = commands.add_parser(
+        "compare", allow_abbrev=False, formatter_class=_HelpFormatter,
+        help="PSNR and SSIM between two images",
+        description="Print the PSNR (dB; inf for identical images) and the SSIM of two "
+                    "images of the same size, measured on the displayed values: linear "
+                    "colour clipped to 0..1 and sRGB-encoded (alpha is ignored).",
+        epilog="example:\n  dofsplat compare demo.png reference.png --diff diff.png")
+    compare.add_argument("a", metavar="A", help="first image: .png, .npy or .exr")
+    compare.add_argument("b", metavar="B", help="second image, the same size")
+    compare.add_argument("--diff", metavar="OUT",
+                         help="also write the difference image, GAIN x |A - B| per channel "
+                              "(.png, .npy or .exr)")
+    compare.add_argument("--gain", metavar="GAIN", type=_positive, default=10.0,
+                         help="amplification of the difference image (default: 10)")
+    compare.add_argument("--json", metavar="FILE.json",
+                         help="also write the numbers as JSON (psnr_db is null for "
+                              "identical images)")
+    compare.add_argument("--space", choices=("srgb", "linear"), default="srgb",
+                         help="compare the displayed sRGB values (default) or the linear ones")
+    compare.add_argument("-q", "--quiet", action="store_true",
+                         help="do not say which files were written")
+    compare.set_defaults(run=run_compare)
+
     parser.set_defaults(run=_no_command)
     return parser
 
@@ -355,12 +497,54 @@ def _no_command(args) -> int:
                         "'dofsplat demo' (dofsplat --help tells more)")
 
 
+# what ``render`` reads, for the help texts (dofsplat.io.LOADERS holds the loaders)
+_MODEL_EXTENSIONS = (".ply", ".ply.gz", ".obj", ".gltf", ".glb", ".stl", ".off", ".las", ".laz",
+                     ".pcd")
+
+
+def _add_input_options(p: argparse.ArgumentParser) -> None:
+    """How a model file becomes surfels: the loader options (dofsplat.io.load's keywords)."""
+    group = p.add_argument_group(
+        "input", "How a file that is not a surfel file becomes surfels (docs/formats.md).")
+    group.add_argument("--points", metavar="N", type=_sample_count,
+                       help="meshes: the number of surfels sampled over the surface "
+                            "(default: the vertex count, at least 200000), or 'vertices' "
+                            "for one surfel per vertex")
+    group.add_argument("--texture", metavar="FILE",
+                       help="meshes: an image applied through the texture coordinates "
+                            "(for an OBJ that names no material file)")
+    group.add_argument("--k", metavar="K", type=_positive_int,
+                       help="point clouds (PLY without faces, LAS/LAZ, PCD): neighbours for "
+                            "the normals and radii (default: 16)")
+
+
+def _loader_options(args) -> dict:
+    """The input options the user gave, as keywords for dofsplat.io.load."""
+    names = ("points", "texture", "k")
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+
+
+def _sample_count(text: str):
+    if text.strip().lower() == "vertices":
+        return "vertices"
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or 'vertices', got "
+                                         f"{text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
 def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
-    """The options that ``render`` and ``demo`` share; help texts name each one's defaults."""
+    """The options that ``render``, ``demo`` and ``reference`` share; help texts name each
+    one's defaults (``reference`` has ``render``'s, or the demo scene's with --demo)."""
     from .demo import DEMO_APERTURE, DEMO_FOV_DEG
 
     is_demo = command == "demo"
-    w, h = DEFAULT_SIZE[command]
+    w, h = DEFAULT_SIZE.get(command, DEFAULT_SIZE["render"])
+    demo_size = " (with --demo: {}x{})".format(*DEFAULT_SIZE["demo"]) if command == "reference" else ""
 
     out = p.add_argument_group("more outputs")
     out.add_argument("--depth", metavar="FILE",
@@ -380,7 +564,7 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
            "Default: looking at the centre of the model's bounding box along -z, from far "
            "enough away that the whole box is in view."))
     cam.add_argument("--size", metavar="WxH", type=_size,
-                     help=f"image size in pixels (default: {w}x{h})")
+                     help=f"image size in pixels (default: {w}x{h}{demo_size})")
     cam.add_argument("--eye", nargs=3, type=_number, metavar=("X", "Y", "Z"),
                      help="camera position, world units")
     cam.add_argument("--target", nargs=3, type=_number, metavar=("X", "Y", "Z"),
@@ -444,6 +628,36 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     ren.add_argument("--no-cull", action="store_true",
                      help="keep surfels that face away from the camera and light both "
                           "sides (for models with inconsistent normals)")
+    if command != "reference":
+        ren.add_argument("--method", choices=("ours", "postfilter"), default="ours",
+                         help="ours: each splat blurred by its circle of confusion before "
+                              "visibility (default); postfilter: the common post-process "
+                              "baseline, a pinhole image blurred by the CoC of its depth "
+                              "buffer (for comparison: it leaks intensity and misses partial "
+                              "occlusion)")
+
+    lod = p.add_argument_group(
+        "level of detail",
+        "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
+        "so the time per frame hardly depends on the aperture (the paper's Section 6.2). "
+        "The picture stays the same (PSNR against --no-lod: about 50 dB on the demo plane).")
+    lod.add_argument("--lod", action=argparse.BooleanOptionalAction, default=True,
+                     help="select splats from the hierarchy (default: on); --no-lod splats "
+                          "every surfel")
+    lod.add_argument("--lod-threshold", metavar="PX", type=_non_negative, default=1.0,
+                     help="also draw a node whole when its disk projects to at most PX "
+                          "pixels in radius, as QSplat does (default: 1; 0 keeps every "
+                          "surfel that the blur does not merge)")
+    lod.add_argument("--show-lod", action="store_true",
+                     help="colour each splat by its level (grey: single surfels, then "
+                          "blue, cyan, green, ... as nodes get coarser) and draw it without "
+                          "the blur, to see which levels the depth of field selects")
+    if not is_demo:
+        lod.add_argument("--lod-cache", metavar="FILE|auto|off", default="auto",
+                         help="where the hierarchy is kept between runs: auto (default) "
+                              "in ~/.cache/dofsplat/lod; a FILE.npz, e.g. next to the "
+                              "model; off builds it each time. A changed model is detected "
+                              "and its hierarchy rebuilt")
 
 
 # -- argument types: each raises ArgumentTypeError, which argparse reports on one line ---
@@ -474,6 +688,16 @@ def _positive(text: str) -> float:
     value = _number(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
     return value
 
 

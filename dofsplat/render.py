@@ -35,6 +35,7 @@ class RenderSettings:
     max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
     lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
+    lod_blur_fraction: float = 1.0  # LOD: draw a node when its filter is at most this x the DOF blur (variance)
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
 
     def __post_init__(self):
@@ -53,6 +54,8 @@ class RenderSettings:
             raise DofsplatError("max_tile_pairs must be positive")
         if not (math.isfinite(self.lod_pixel_threshold) and self.lod_pixel_threshold >= 0):
             raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
+        if not (math.isfinite(self.lod_blur_fraction) and 0 < self.lod_blur_fraction <= 1):
+            raise DofsplatError(f"lod_blur_fraction must be in (0, 1], got {self.lod_blur_fraction}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
 
@@ -154,7 +157,8 @@ def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hie
                             f"the model has {len(surfels)}")
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
-                           settings.lod_pixel_threshold, settings.cull_backfaces)
+                           settings.lod_pixel_threshold, settings.cull_backfaces,
+                           settings.lod_blur_fraction)
     if settings.show_lod:
         source = source._replace(colors=lod_level_colors(source.level))
     return source

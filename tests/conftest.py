@@ -10,6 +10,12 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session", autouse=True)
+def _private_cache(tmp_path_factory):
+    """Keep LOD hierarchies that the CLI caches out of the user's ~/.cache."""
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))
+
+
+@pytest.fixture(scope="session", autouse=True)
 def _compiled():
     """Compile (or load from cache) the kernels once per session."""
     ds.render.__module__  # noqa: B018 - keep the import

@@ -172,7 +172,7 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
     select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal,
                  tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, 0.01, 160, 120,
-                 coc_k, inv_p, 2.5, 0.0, True, flags)
+                 coc_k, inv_p, 2.5, 0.0, 1.0, True, flags)
     chosen = np.flatnonzero(flags)
     inner = chosen[tree.count[chosen] > 1]
     assert inner.size > 20  # the blur lets the cut stop above the leaves

@@ -20,11 +20,18 @@ from ..surfels import Surfels
 from .colors import linear_to_srgb, srgb_to_linear
 from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
                      check_writable_path, read_image, write_depth, write_image)
-from .ply import read_surfel_ply, write_surfel_ply
+from .las import LAS_EXTENSIONS, read_las
+from .mesh import MESH_EXTENSIONS, read_mesh
+from .pcd import PCD_EXTENSIONS, read_pcd
+from .ply import read_ply, read_surfel_ply, write_surfel_ply
 
 LOADERS: dict[str, Callable[..., Surfels]] = {
-    ".ply": read_surfel_ply,
-    ".ply.gz": read_surfel_ply,
+    # any PLY: surfels, 3DGS, a mesh or bare points, told apart by its header
+    ".ply": read_ply,
+    ".ply.gz": read_ply,
+    **{ext: read_mesh for ext in MESH_EXTENSIONS},
+    **{ext: read_las for ext in LAS_EXTENSIONS},
+    **{ext: read_pcd for ext in PCD_EXTENSIONS},
 }
 
 SAVERS: dict[str, Callable[..., object]] = {
@@ -33,14 +40,17 @@ SAVERS: dict[str, Callable[..., object]] = {
 }
 
 __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
-           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "read_image", "read_surfel_ply",
+           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "read_image",
+           "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
 
 
 def load(path, **options) -> Surfels:
     """Load a surfel model, choosing the loader by the file's extension.
 
-    options are passed to the loader (for PLY: ``material``). Raises DofsplatError for a
+    options are passed to the loader: ``material`` for all; ``points`` (sample count or
+    "vertices") and ``texture`` (an image file) for meshes; ``k`` (neighbours for normals
+    and radii) for point clouds (docs/formats.md lists them). Raises DofsplatError for a
     missing file, an unsupported extension, an option the loader does not take, or
     whatever the loader finds wrong with the file.
     """

@@ -29,7 +29,8 @@ def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
 
 
 def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
-                  cutoff: float, pixel_threshold: float, cull_backfaces: bool):
+                  cutoff: float, pixel_threshold: float, cull_backfaces: bool,
+                  blur_fraction: float = 1.0):
     """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
     import numpy as np
 
@@ -44,7 +45,7 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
     select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal, tree.cone,
                  tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near, camera.width,
                  camera.height, float(coc_k), float(inv_focus), float(cutoff),
-                 float(pixel_threshold) ** 2, bool(cull_backfaces), flags)
+                 float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
     nodes = np.flatnonzero(flags)
     n = nodes.size
     ell = surfels.is_elliptical

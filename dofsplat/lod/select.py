@@ -7,10 +7,11 @@ A node is selected when
 
 * it is a leaf; or
 * its screen-space LOD blur fits inside the DOF blur everywhere in it (the DOF stop):
-      lambda_max(J V^{q,l} J^T) <= V^I(C_min),
+      lambda_max(J V^{q,l} J^T) <= kappa V^I(C_min),
   where J V^{q,l} J^T is the node's low-pass filter projected at its mean position
   (``ewa.screen_lod_variance``) and C_min the smallest circle of confusion over the
-  node's depth range.
+  node's depth range. kappa = 1 is the paper's rule; a smaller kappa stops one level lower
+  (kappa = 1/2: about 1.5 x the fragments, 1.5-8 dB closer to the reference).
   Then circumellipse(J V^{q,l} J^T, V^I) = V^I: the node's resampling kernel is exactly the
   no-LOD DOF kernel of eq. 11, rasterised from one splat instead of many (PAPER_NOTES §4);
 * or it is smaller than the pixel threshold (QSplat's stop): its level basis V^l = V^r + V^q,
@@ -45,7 +46,7 @@ CONE_TEST_MIN_COUNT = 32
 @shared
 def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
                ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-               thr2, cull_backfaces):
+               thr2, kappa, cull_backfaces):
     """CULL, SELECT or DESCEND for node i (see the module docstring)."""
     if count[i] == 1:
         # a leaf is one surfel: the projection culls it exactly (near plane, back face,
@@ -124,7 +125,7 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
         if inv_focus > 0.0 and u_lo <= 1.0 / inv_focus <= u_hi:
             return DESCEND  # the focal plane runs through the node
         coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
-        if lam_q <= dof_variance(coc_min):
+        if lam_q <= kappa * dof_variance(coc_min):
             return SELECT
     return DESCEND
 
@@ -132,7 +133,7 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
 @numba.njit(cache=True, nogil=True)
 def _walk(root, root_depth, max_depth, count, center, bound, extent, position, normal, cone,
           sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-          cutoff, thr2, cull_backfaces, flags, pending, n_pending):
+          cutoff, thr2, kappa, cull_backfaces, flags, pending, n_pending):
     """Depth-first walk of the subtree at ``root``; nodes deeper than max_depth that need a
     visit are appended to ``pending`` instead. Returns the new n_pending."""
     stack = np.empty(STACK, np.int64)
@@ -151,7 +152,7 @@ def _walk(root, root_depth, max_depth, count, center, bound, extent, position, n
             continue
         what = visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
                           view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-                          cutoff, thr2, cull_backfaces)
+                          cutoff, thr2, kappa, cull_backfaces)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
@@ -167,18 +168,18 @@ def _walk(root, root_depth, max_depth, count, center, bound, extent, position, n
 @numba.njit(cache=True, nogil=True, parallel=True)
 def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-                 cull_backfaces, flags):
+                 kappa, cull_backfaces, flags):
     """Set flags[i] = 1 for every node of the cut, 0 elsewhere. Returns the number of nodes."""
     flags[:] = 0
     pending = np.empty(1 << (SPLIT_DEPTH + 1), np.int64)
     n_pending = _walk(0, 0, SPLIT_DEPTH - 1, count, center, bound, extent, position, normal, cone,
                       sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
-                      inv_focus, cutoff, thr2, cull_backfaces, flags, pending, 0)
+                      inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, 0)
     dummy = np.empty(1, np.int64)
     for t in numba.prange(n_pending):
         _walk(pending[t], 0, STACK, count, center, bound, extent, position, normal, cone, sigma_r2,
               lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-              cull_backfaces, flags, dummy, 0)
+              kappa, cull_backfaces, flags, dummy, 0)
     n = 0
     for i in range(flags.shape[0]):
         n += flags[i]

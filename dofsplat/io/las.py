@@ -1,0 +1,102 @@
+"""LAS and LAZ point clouds (ASPRS LAS 1.0 to 1.4, COPC included), read by laspy.
+
+laspy decodes the points (LAZ through its lazrs backend); the coordinates are the scaled
+x y z, the colour the point format's red green blue when it has them. LAS stores colour as
+16-bit sRGB values: they are scaled by 1/65535 and decoded to linear. Many writers put
+8-bit values in those 16-bit fields; when no channel exceeds 255 the scale is 1/255.
+
+LAS files are often georeferenced, with coordinates of 10^5 to 10^7 metres, where float32
+(the surfel positions) keeps only centimetres or worse. When float32 would be coarser
+than the file's own quantisation, the points are shifted by the (rounded) centre of their
+bounding box, with a warning that gives the shift.
+
+LAS coordinates are z-up (x east, y north, z up); dofsplat's are y-up (the default camera
+looks along -z with y up). The points are turned -90 degrees about x, (x, y, z) ->
+(x, z, -y), so that ``dofsplat render`` shows the scan upright, seen from the south
+(from the scan's -y side) rather than from above. Surfels then come from
+:func:`dofsplat.pointcloud.points_to_surfels` (PCA normals, radii from the density).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DofsplatError
+from ..surfels import Material, Surfels
+
+LAS_EXTENSIONS = (".las", ".laz")
+
+
+def read_las(path, *, material: Material | None = None, k: int | None = None) -> Surfels:
+    """Load a .las / .laz file as surfels; k: neighbours for normals and radii."""
+    from dataclasses import replace
+
+    from ..pointcloud import points_to_surfels
+    from .ply import finite_rows
+
+    path = Path(path)
+    if not path.is_file():
+        raise DofsplatError(f"no such file: {path}")
+    positions, colors, scale = read_las_points(path)
+    keep = finite_rows(positions, colors, source=str(path))
+    positions = positions[keep]
+    colors = None if colors is None else colors[keep]
+    positions = _recentre(positions, scale, str(path))
+    positions = z_up_to_y_up(positions)
+    surfels = points_to_surfels(positions, colors, None, k=k, source=str(path))
+    return surfels if material is None else replace(surfels, material=material)
+
+
+def read_las_points(path) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """(positions (N, 3) float64, colours (N, 3) float32 linear or None, the smallest
+    coordinate scale of the header) from a LAS / LAZ file."""
+    import laspy
+
+    from .colors import srgb_to_linear
+
+    path = Path(path)
+    try:
+        las = laspy.read(str(path))
+        n = int(las.header.point_count)
+        positions = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)],
+                             axis=1).astype(np.float64)
+        names = set(las.point_format.dimension_names)
+        rgb = (np.stack([np.asarray(las[c]) for c in ("red", "green", "blue")], axis=1)
+               if {"red", "green", "blue"} <= names else None)
+        scale = float(np.min(las.header.scales))
+    except PermissionError as e:
+        raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
+    except Exception as e:  # laspy and lazrs raise many types for a damaged file
+        text = " ".join(str(e).split()) or "no details"
+        raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: "
+                            f"{type(e).__name__}: {text[:300]}") from e
+    if n == 0 or len(positions) == 0:
+        raise DofsplatError(f"{path}: the file holds no points")
+    colors = None
+    if rgb is not None and rgb.size:
+        top = 255.0 if int(rgb.max()) <= 255 else 65535.0
+        colors = srgb_to_linear(rgb.astype(np.float32) / np.float32(top))
+    return positions, colors, scale
+
+
+def z_up_to_y_up(positions: np.ndarray) -> np.ndarray:
+    """(x, y, z) -> (x, z, -y): LAS's z-up frame turned -90 degrees about x into y-up."""
+    return np.stack([positions[:, 0], positions[:, 2], -positions[:, 1]], axis=1)
+
+
+def _recentre(positions: np.ndarray, scale: float, source: str) -> np.ndarray:
+    """Shift points far from the origin so that float32 keeps the file's precision."""
+    extent = float(np.max(np.abs(positions)))
+    quantum = scale if math.isfinite(scale) and scale > 0 else 1e-3
+    if extent * 2.0**-24 <= 0.5 * quantum:
+        return positions
+    lo, hi = positions.min(axis=0), positions.max(axis=0)
+    shift = -np.round(0.5 * (lo + hi))
+    warnings.warn(f"{source}: coordinates reach {extent:,.0f}, beyond float32 precision; "
+                  f"shifted by ({', '.join(f'{v:,.0f}' for v in shift)}): camera positions "
+                  "are in these shifted (and y-up) coordinates", stacklevel=3)
+    return positions + shift
