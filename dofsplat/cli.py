@@ -124,11 +124,10 @@ def run_reference(args) -> int:
         raise DofsplatError("give either a model file or --demo (the built-in scene), "
                             "not both" if args.demo else
                             "give a model file to render, or --demo for the built-in scene")
-    # every lens sample is a full-resolution pinhole render: no LOD hierarchy to build
-    if getattr(args, "show_lod", False):
-        raise DofsplatError("--show-lod does not apply to the reference, whose lens samples "
-                            "are full-resolution pinhole renders")
-    args.lod = False
+    # every lens sample is a full-resolution pinhole render: no LOD hierarchy to build (the
+    # parser has no LOD options for this command; the shared code reads these)
+    args.lod, args.show_lod = False, False
+    args.lod_threshold = getattr(args, "lod_threshold", 1.0)
     return run_demo(args) if args.demo else run_render(args)
 
 
@@ -267,7 +266,7 @@ def _settings(args):
     return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof, shading=args.shading,
                           background=background, cull_backfaces=not args.no_cull,
                           lod=args.lod, lod_pixel_threshold=args.lod_threshold,
-                          show_lod=args.show_lod)
+                          lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod)
 
 
 def _check_arguments(args) -> None:
@@ -347,7 +346,7 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "background_linear": list(settings.background),
         "cull_backfaces": settings.cull_backfaces,
         "lod": settings.lod, "lod_pixel_threshold": settings.lod_pixel_threshold,
-        "show_lod": settings.show_lod,
+        "lod_blur_fraction": settings.lod_blur_fraction, "show_lod": settings.show_lod,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}
@@ -636,6 +635,8 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                               "buffer (for comparison: it leaks intensity and misses partial "
                               "occlusion)")
 
+    if command == "reference":
+        return  # its lens samples are full-resolution pinhole renders: no LOD options
     lod = p.add_argument_group(
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
@@ -648,6 +649,11 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="also draw a node whole when its disk projects to at most PX "
                           "pixels in radius, as QSplat does (default: 1; 0 keeps every "
                           "surfel that the blur does not merge)")
+    lod.add_argument("--lod-blur-fraction", metavar="K", type=_fraction, default=1.0,
+                     help="draw a node when its own blur is at most K times the depth-of-"
+                          "field blur (variance): 1 (default) is the paper's rule; 0.5 goes "
+                          "one level finer, closer to the exact picture, for ~1.5x the "
+                          "fragments")
     lod.add_argument("--show-lod", action="store_true",
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
@@ -705,6 +711,13 @@ def _non_negative(text: str) -> float:
     value = _number(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    value = _number(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
     return value
 
 

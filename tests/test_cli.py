@@ -402,3 +402,6 @@ def test_show_lod_needs_lod(plane_ply, workdir, capsys):
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--show-lod", "--no-lod"], capsys)
     assert_one_line_error(status, err)
     assert "--show-lod needs" in err and not os.path.exists("x.png")
+    status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-blur-fraction", "1.5"], capsys)
+    assert_one_line_error(status, err)
+    assert "(0, 1]" in err and not os.path.exists("x.png")
