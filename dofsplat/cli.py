@@ -4,6 +4,7 @@
     dofsplat demo [-o demo.png] [the same options; the scene supplies the defaults]
     dofsplat reference (MODEL.ply | --demo) [-o reference.png] [--samples N] [the same options]
     dofsplat compare A B [--diff DIFF.png] [--json FILE.json]
+    dofsplat convert INPUT -o OUT.ply [--k K] [--normalise none|object|render]
 
 ``render`` and ``demo`` take ``--method ours|postfilter`` (our DOF, or the post-process
 baseline of :mod:`dofsplat.postfilter`); ``reference`` averages pinhole renders over the
@@ -55,6 +56,7 @@ examples:
   dofsplat demo --method postfilter -o postfilter.png
   dofsplat reference --demo -o reference.png --samples 200
   dofsplat compare demo.png reference.png --diff diff.png
+  dofsplat convert scan.laz -o scan-surfels.ply --normalise object
 """
 
 
@@ -125,9 +127,14 @@ def run_reference(args) -> int:
                             "not both" if args.demo else
                             "give a model file to render, or --demo for the built-in scene")
     # every lens sample is a full-resolution pinhole render: no LOD hierarchy to build (the
-    # parser has no LOD options for this command; the shared code reads these)
+    # parser has no LOD options for this command; the shared code reads these, so any LOD
+    # option added later gets RenderSettings' default here rather than an AttributeError)
+    from .render import RenderSettings
+
+    lod_defaults = RenderSettings()
     args.lod, args.show_lod = False, False
-    args.lod_threshold = getattr(args, "lod_threshold", 1.0)
+    args.lod_threshold = getattr(args, "lod_threshold", lod_defaults.lod_pixel_threshold)
+    args.lod_blur_fraction = getattr(args, "lod_blur_fraction", lod_defaults.lod_blur_fraction)
     return run_demo(args) if args.demo else run_render(args)
 
 
@@ -169,6 +176,31 @@ def run_compare(args) -> int:
     print(f"PSNR {result['psnr']:.2f} dB  SSIM {result['ssim']:.4f}")
     if outputs and not args.quiet:
         print(f"wrote {', '.join(str(p) for p in outputs.values())}", file=sys.stderr)
+    return EXIT_OK
+
+
+def run_convert(args) -> int:
+    """``dofsplat convert``: any model file to a normalised surfel PLY, done once."""
+    import time
+
+    from .io import SAVERS, check_writable_path, load, save_surfels
+    from .normalise import normalise
+
+    out = Path(args.output)
+    if not any(out.name.lower().endswith(ext) for ext in SAVERS):
+        raise DofsplatError(f"{out}: a converted model is saved as a surfel PLY; give a name "
+                            f"ending in {' or '.join(sorted(SAVERS))}")
+    check_writable_path(out, "a surfel file name")
+    if Path(args.input).exists() and out.resolve() == Path(args.input).resolve():
+        raise DofsplatError(f"the output {out} would overwrite the input")
+    t0 = time.perf_counter()
+    surfels = load(args.input, **_loader_options(args))
+    surfels = normalise(surfels, args.normalise,
+                        progress=not args.quiet and sys.stderr.isatty())
+    save_surfels(out, surfels)
+    if not args.quiet:
+        print(f"wrote {out} ({len(surfels):,} surfels, normalisation: {args.normalise}, "
+              f"{time.perf_counter() - t0:.1f} s)", file=sys.stderr)
     return EXIT_OK
 
 
@@ -223,14 +255,19 @@ def _render_by_method(args, surfels, camera, lens, settings):
 
 
 def _framing_camera(args, lo, hi, width: int, height: int):
-    """``render``'s default camera: on the +z side of the model, its bounding box in view."""
+    """``render``'s default camera: its bounding box in view, from the +z side of the model,
+    or, when --up is (nearly) the z axis, from the -y side (a z-up scan seen from the front)."""
     from .camera import Camera
 
     fov = args.fov or DEFAULT_FOV_DEG
     if args.frustum is not None:
         left, right, bottom, top, near = args.frustum
         fov = math.degrees(2.0 * math.atan((top - bottom) / (2.0 * near)))
-    return Camera.framing(lo, hi, width, height, fov, up=args.up or (0.0, 1.0, 0.0))
+    up = tuple(args.up or (0.0, 1.0, 0.0))
+    direction = (0.0, 0.0, 1.0)
+    if abs(up[2]) > 0.9 * math.hypot(*up):
+        direction = (0.0, -1.0, 0.0)
+    return Camera.framing(lo, hi, width, height, fov, direction=direction, up=up)
 
 
 def _camera(args, base):
@@ -266,7 +303,8 @@ def _settings(args):
     return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof, shading=args.shading,
                           background=background, cull_backfaces=not args.no_cull,
                           lod=args.lod, lod_pixel_threshold=args.lod_threshold,
-                          lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod)
+                          lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod,
+                          device=getattr(args, "device", "cpu"))
 
 
 def _check_arguments(args) -> None:
@@ -293,6 +331,12 @@ def _check_arguments(args) -> None:
         if not (0 <= x < width and 0 <= y < height):
             raise DofsplatError(f"--focus-at pixel ({x:g}, {y:g}) lies outside the "
                                 f"{width}x{height} image")
+    if getattr(args, "device", "cpu") != "cpu":
+        from .backends import resolve_device
+
+        # --device cuda without a working GPU stops here, before any loading or writing;
+        # auto falls back to the CPU with one warning
+        args.device = resolve_device(args.device, flag="--device")
 
 
 # -- outputs -----------------------------------------------------------------------------
@@ -347,6 +391,7 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "cull_backfaces": settings.cull_backfaces,
         "lod": settings.lod, "lod_pixel_threshold": settings.lod_pixel_threshold,
         "lod_blur_fraction": settings.lod_blur_fraction, "show_lod": settings.show_lod,
+        "device": settings.device,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}
@@ -486,6 +531,30 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("-q", "--quiet", action="store_true",
                          help="do not say which files were written")
     compare.set_defaults(run=run_compare)
+
+    convert = commands.add_parser(
+        "convert", allow_abbrev=False, formatter_class=_HelpFormatter,
+        help="turn a model file into normalised surfels, saved as a surfel PLY",
+        description="Load any model file as 'render' does (points get normals and radii, "
+                    "meshes and Gaussian splats become surfels), compute the per-surfel "
+                    "normalisation so that splats sum to 1 over the surface (paper Section "
+                    "6.3), and save the surfels, so that this is done once.",
+        epilog="examples:\n  dofsplat convert scan.laz -o scan-surfels.ply\n"
+               "  dofsplat convert dragon.ply.gz -o dragon.ply --points vertices "
+               "--normalise render")
+    convert.add_argument("input", metavar="INPUT",
+                         help="model file: " + ", ".join(_MODEL_EXTENSIONS))
+    convert.add_argument("-o", "--output", metavar="OUT.ply", required=True,
+                         help="surfel PLY to write (.ply, binary, or .ply.gz)")
+    convert.add_argument("--normalise", choices=("none", "object", "render"), default="object",
+                         help="per-surfel normalisation: object (default; neighbours' basis "
+                              "functions summed in each surfel's tangent plane, seconds), "
+                              "render (the paper's: weights read back from renders, slower) "
+                              "or none")
+    convert.add_argument("-q", "--quiet", action="store_true",
+                         help="no progress bars, no summary line")
+    _add_input_options(convert)
+    convert.set_defaults(run=run_convert)
 
     parser.set_defaults(run=_no_command)
     return parser
@@ -634,6 +703,10 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                               "baseline, a pinhole image blurred by the CoC of its depth "
                               "buffer (for comparison: it leaks intensity and misses partial "
                               "occlusion)")
+        ren.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
+                         help="where to render: cpu (default); cuda, an NVIDIA GPU (pip install "
+                              "'dofsplat[cuda]'; an error if none works); auto, the GPU if one "
+                              "works, else the CPU")
 
     if command == "reference":
         return  # its lens samples are full-resolution pinhole renders: no LOD options

@@ -405,3 +405,14 @@ def test_show_lod_needs_lod(plane_ply, workdir, capsys):
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-blur-fraction", "1.5"], capsys)
     assert_one_line_error(status, err)
     assert "(0, 1]" in err and not os.path.exists("x.png")
+
+
+def test_z_up_framing_looks_from_the_front(plane_ply, workdir, capsys):
+    """--up 0 0 1 without --eye: the default camera looks along +y (a z-up scan's front)."""
+    status, _, err = run_main(["render", plane_ply, "-o", "z.png", "--size", SIZE_ARG, "--up", "0", "0", "1",
+                               "--stats", "z.json", "--lod-cache", "off"], capsys)
+    assert status == 0, err
+    cam = json.load(open("z.json"))["camera"]
+    eye, target = np.array(cam["eye"]), np.array(cam["target"])
+    d = (target - eye) / np.linalg.norm(target - eye)
+    np.testing.assert_allclose(d, [0, 1, 0], atol=1e-9)
