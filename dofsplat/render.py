@@ -37,6 +37,7 @@ class RenderSettings:
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 1.0  # LOD: draw a node when its filter is at most this x the DOF blur (variance)
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
+    device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
@@ -58,6 +59,10 @@ class RenderSettings:
             raise DofsplatError(f"lod_blur_fraction must be in (0, 1], got {self.lod_blur_fraction}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
+        from .backends import DEVICES
+
+        if self.device not in DEVICES:
+            raise DofsplatError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
 
 
 @dataclass
@@ -101,6 +106,12 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
     settings = settings or RenderSettings()
     if not isinstance(surfels, Surfels):
         raise DofsplatError("render() needs a Surfels model")
+    from .backends import resolve_device
+
+    if resolve_device(settings.device) == "cuda":
+        from .backends.cuda import render_cuda
+
+        return render_cuda(surfels, camera, lens, settings, hierarchy)  # the same stages, on the GPU
     warm_up()
     times = {}
     t_start = time.perf_counter()
@@ -149,12 +160,9 @@ def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hie
 
     if not settings.lod:
         return from_surfels(surfels)
-    from .lod import hierarchy_for, select_splats
+    from .lod import select_splats
 
-    tree = hierarchy if hierarchy is not None else hierarchy_for(surfels)
-    if tree.n_surfels != len(surfels):
-        raise DofsplatError(f"the LOD hierarchy was built for {tree.n_surfels} surfels, "
-                            f"the model has {len(surfels)}")
+    tree = lod_tree(surfels, hierarchy)
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
                            settings.lod_pixel_threshold, settings.cull_backfaces,
@@ -162,6 +170,17 @@ def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hie
     if settings.show_lod:
         source = source._replace(colors=lod_level_colors(source.level))
     return source
+
+
+def lod_tree(surfels: Surfels, hierarchy=None):
+    """The model's LOD ``Hierarchy``: ``hierarchy`` if given (checked), else built or cached."""
+    from .lod import hierarchy_for
+
+    tree = hierarchy if hierarchy is not None else hierarchy_for(surfels)
+    if tree.n_surfels != len(surfels):
+        raise DofsplatError(f"the LOD hierarchy was built for {tree.n_surfels} surfels, "
+                            f"the model has {len(surfels)}")
+    return tree
 
 
 def lod_level_colors(level: np.ndarray) -> np.ndarray:

@@ -1,0 +1,738 @@
+"""The CUDA backend: ``render``'s stages as numba-cuda kernels (``device="cuda"``).
+
+    select (LOD cut) -> shade -> project -> bin to tiles -> rasterise into the A-buffer
+    and resolve
+
+The per-splat maths is not written twice. Every function the CPU kernels call per splat,
+per node or per fragment is a ``shared`` (numba.njit) function whose ``.py_func`` is
+compiled here once more, as a CUDA device function, by ``device_twin``:
+
+    project_splat (splat/project.py)  -> ewa.project_surfel, kernel_bbox, kernel_pixel_sum
+    shade_splat (splat/shade.py), gather_node and visit_node (lod/select.py)
+    insert_fragment, resolve_pixel (raster/abuffer.py); ewa.row_pixel_range, ewa.exponent
+
+``device_twin`` gives the copy of each function a globals dict in which the ``shared``
+functions it calls are their own device twins, so nested calls stay on the GPU. What is
+written here is only the parallel structure around those calls:
+
+* select: the hierarchy is cut breadth first, one thread per node of the current level
+  (``visit_node``), the next level's nodes appended with an atomic counter; the cut (a flag
+  per node) is compacted in node order by a prefix sum and gathered (``gather_node``);
+* shade, project: one thread per splat;
+* bin: tile-splat pairs counted per tile with atomics, offsets by a prefix sum, filled with
+  atomics, then each tile's list sorted by splat index (a bitonic sort, one block per tile)
+  so that fragments reach every pixel in the CPU's order;
+* rasterise: one block per 16x16 tile, one thread per pixel, the tile's splats loaded into
+  shared memory in batches and walked in index order; each thread keeps its pixel's
+  A-buffer (``insert_fragment``) and resolves it (``resolve_pixel``).
+
+So the image equals the CPU's up to floating-point rounding: the kernel value is
+``exp(-exponent)`` at each pixel instead of the CPU's forward differences along a row.
+
+Device copies of a model (and its hierarchy) are kept on the ``Surfels`` object between
+frames, like the hierarchy itself: edit a model's arrays in place and the GPU keeps the old
+copy; make a new ``Surfels`` instead.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import types
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import cuda
+
+from ..lod.select import CULL, DESCEND, SELECT, gather_node, visit_node
+from ..raster.abuffer import MAX_SURFACES, N_ACC, TILE, insert_fragment, resolve_pixel
+from ..splat.ewa import exponent, row_pixel_range
+from ..splat.project import (AMP, ALPHA, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, N_FIELDS,
+                             RED, X0, X1, ZHI, ZLO, project_splat)
+from ..splat.shade import shade_splat
+from ..splat.source import SplatSource
+
+SIMULATOR = bool(numba.config.ENABLE_CUDASIM)
+
+# -- the shared maths as device functions ------------------------------------------------
+
+_TWINS: dict = {}
+
+
+def device_twin(fn):
+    """The CUDA device function compiled from the source of a CPU-jitted function.
+
+    fn: a ``shared``/``numba.njit`` dispatcher (or a plain function). Globals of fn that are
+    CPU-jitted functions are replaced, in a copy of fn's globals, by their own device
+    twins; constants and modules are shared. One twin per function, made lazily: numba
+    compiles it on the first kernel that calls it.
+    """
+    py = getattr(fn, "py_func", fn)
+    twin = _TWINS.get(py)
+    if twin is None:
+        glb = dict(py.__globals__)
+        for name in py.__code__.co_names:
+            if isinstance(glb.get(name), numba.core.registry.CPUDispatcher):
+                glb[name] = device_twin(glb[name])
+        clone = types.FunctionType(py.__code__, glb, py.__name__, py.__defaults__, py.__closure__)
+        clone.__qualname__, clone.__module__ = py.__qualname__, py.__module__
+        clone.__doc__ = py.__doc__
+        twin = cuda.jit(device=True)(clone)
+        _TWINS[py] = twin
+    return twin
+
+
+_project_splat = device_twin(project_splat)
+_shade_splat = device_twin(shade_splat)
+_visit_node = device_twin(visit_node)
+_gather_node = device_twin(gather_node)
+_insert_fragment = device_twin(insert_fragment)
+_resolve_pixel = device_twin(resolve_pixel)
+_row_pixel_range = device_twin(row_pixel_range)
+_exponent = device_twin(exponent)
+
+# Block sizes. The simulator runs every thread as a Python thread: smaller blocks there keep
+# the tests fast and take the multi-level scan and the global-memory sort on tiny inputs.
+THREADS = 32 if SIMULATOR else 256  # threads per block of the one-thread-per-item kernels
+PIXELS = TILE * TILE  # threads per block of the rasteriser: one per pixel of a tile
+SCAN_BLOCK = 32 if SIMULATOR else 256  # elements per block of the prefix sum
+SORT_SHARED = 64 if SIMULATOR else 4096  # tile lists up to this length are sorted in shared memory
+
+
+@cuda.jit
+def probe_kernel(out):
+    """Writes 1.0: ``backends.cuda_problem`` runs it to see that kernels compile and run."""
+    out[0] = 1.0
+
+
+# -- kernels: small helpers ----------------------------------------------------------------
+
+
+@cuda.jit
+def _fill(a, value):
+    i = cuda.grid(1)
+    if i < a.shape[0]:
+        a[i] = value
+
+
+@cuda.jit
+def _scan_blocks(src, n, out, block_sums):
+    """out[i + 1] = inclusive sum of src within its block; block_sums[b] = the block's total."""
+    sh = cuda.shared.array(SCAN_BLOCK, numba.int64)
+    tid = cuda.threadIdx.x
+    i = cuda.blockIdx.x * SCAN_BLOCK + tid
+    v = numba.int64(0)
+    if i < n:
+        v = numba.int64(src[i])
+    sh[tid] = v
+    cuda.syncthreads()
+    step = 1
+    while step < SCAN_BLOCK:  # Hillis-Steele
+        add = numba.int64(0)
+        if tid >= step:
+            add = sh[tid - step]
+        cuda.syncthreads()
+        sh[tid] += add
+        cuda.syncthreads()
+        step *= 2
+    if i < n:
+        out[i + 1] = sh[tid]
+    if i == 0:
+        out[0] = 0
+    if tid == SCAN_BLOCK - 1:
+        block_sums[cuda.blockIdx.x] = sh[tid]
+
+
+@cuda.jit
+def _scan_add(out, n, block_offsets):
+    i = cuda.grid(1)
+    if i < n:
+        out[i + 1] += block_offsets[i // SCAN_BLOCK]
+
+
+@cuda.jit
+def _scatter_flagged(flags, position, nodes):
+    i = cuda.grid(1)
+    if i < flags.shape[0] and flags[i] != 0:
+        nodes[position[i]] = i
+
+
+# -- kernels: the stages ---------------------------------------------------------------------
+
+
+@cuda.jit
+def _lod_level(frontier, n_front, next_frontier, n_next, flags, count, center, bound, extent,
+               position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
+               height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces):
+    """One level of the breadth-first cut: visit each frontier node, flag or expand it."""
+    t = cuda.grid(1)
+    if t < n_front:
+        i = frontier[t]
+        what = _visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2,
+                           lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
+                           cutoff, thr2, kappa, cull_backfaces)
+        if what == SELECT:
+            flags[i] = 1
+        elif what == DESCEND:
+            slot = cuda.atomic.add(n_next, 0, 2)
+            next_frontier[slot] = i + 1  # left child
+            next_frontier[slot + 1] = i + 2 * (count[i] // 2)  # right child
+
+
+@cuda.jit
+def _gather(nodes, order, start, count, position, normal, color, opacity, area, sigma_r2,
+            lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
+            elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
+            out_rv, out_area, out_cov, out_level):
+    t = cuda.grid(1)
+    if t < nodes.shape[0]:
+        _gather_node(t, nodes[t], order, start, count, position, normal, color, opacity, area,
+                     sigma_r2, lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                     s_weight, elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha,
+                     out_tan, out_ru, out_rv, out_area, out_cov, out_level)
+
+
+@cuda.jit
+def _level_colors(level, palette, out):
+    t = cuda.grid(1)
+    if t < level.shape[0]:
+        c = min(numba.int64(level[t]), palette.shape[0] - 1)
+        for d in range(3):
+            out[t, d] = palette[c, d]
+
+
+@cuda.jit
+def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess, two_sided,
+           out):
+    k = cuda.grid(1)
+    if k < positions.shape[0]:
+        _shade_splat(k, positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess,
+                     two_sided, out)
+
+
+@cuda.jit
+def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
+             by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
+             exact_norm, analytic, out, bbox, visible):
+    k = cuda.grid(1)
+    if k < positions.shape[0]:
+        _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+                       cull_backfaces, exact_norm, analytic, out, bbox, visible)
+
+
+@cuda.jit
+def _count_pairs(bbox, visible, n_tx, counts, n_visible):
+    """Tile-splat pairs per tile (atomics), and the number of visible splats."""
+    block_visible = cuda.shared.array(1, numba.int64)
+    if cuda.threadIdx.x == 0:
+        block_visible[0] = 0
+    cuda.syncthreads()
+    k = cuda.grid(1)
+    if k < visible.shape[0] and visible[k]:
+        for ty in range(bbox[k, 2] // TILE, bbox[k, 3] // TILE + 1):
+            for tx in range(bbox[k, 0] // TILE, bbox[k, 1] // TILE + 1):
+                cuda.atomic.add(counts, ty * n_tx + tx, 1)
+        cuda.atomic.add(block_visible, 0, 1)
+    cuda.syncthreads()
+    if cuda.threadIdx.x == 0:
+        cuda.atomic.add(n_visible, 0, block_visible[0])
+
+
+@cuda.jit
+def _fill_pairs(bbox, visible, n_tx, cursor, ids):
+    """Each visible splat's index into the lists of the tiles it touches (any order)."""
+    k = cuda.grid(1)
+    if k < visible.shape[0] and visible[k]:
+        for ty in range(bbox[k, 2] // TILE, bbox[k, 3] // TILE + 1):
+            for tx in range(bbox[k, 0] // TILE, bbox[k, 1] // TILE + 1):
+                ids[cuda.atomic.add(cursor, ty * n_tx + tx, 1)] = k
+
+
+@cuda.jit(device=True)
+def _bitonic_sort(a, lo, n, tid, n_threads):
+    """Sort a[lo:lo + n] ascending with the block's threads (a bitonic network).
+
+    The network of the next power of two p >= n, every comparator ascending ("flip" then
+    half-cleaners), so the virtual entries a[lo + n:lo + p], read as +inf, never move and
+    are never touched.
+    """
+    p = 1
+    while p < n:
+        p *= 2
+    size = 2
+    while size <= p:
+        half = size // 2
+        for q in range(tid, p // 2, n_threads):  # flip: mirror pairs of each size-block
+            x = (q // half) * size + q % half
+            y = (q // half) * size + size - 1 - q % half
+            if y < n and a[lo + x] > a[lo + y]:
+                a[lo + x], a[lo + y] = a[lo + y], a[lo + x]
+        cuda.syncthreads()
+        span = half // 2
+        while span > 0:  # half-cleaners
+            for q in range(tid, p // 2, n_threads):
+                x = (q // span) * 2 * span + q % span
+                y = x + span
+                if y < n and a[lo + x] > a[lo + y]:
+                    a[lo + x], a[lo + y] = a[lo + y], a[lo + x]
+            cuda.syncthreads()
+            span //= 2
+        size *= 2
+
+
+@cuda.jit
+def _sort_tiles(offsets, ids):
+    """One block per tile: sort the tile's splat list by splat index."""
+    t = cuda.blockIdx.x
+    tid = cuda.threadIdx.x
+    lo = offsets[t]
+    n = offsets[t + 1] - lo
+    if n <= 1:
+        return  # the whole block returns: no barrier is left waiting
+    if n <= SORT_SHARED:
+        buf = cuda.shared.array(SORT_SHARED, numba.int32)
+        for e in range(tid, n, cuda.blockDim.x):
+            buf[e] = ids[lo + e]
+        cuda.syncthreads()
+        _bitonic_sort(buf, 0, n, tid, cuda.blockDim.x)
+        for e in range(tid, n, cuda.blockDim.x):
+            ids[lo + e] = buf[e]
+    else:
+        _bitonic_sort(ids, lo, n, tid, cuda.blockDim.x)
+
+
+@cuda.jit
+def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg_g, bg_b,
+               image, depth, weight, tile_stats):
+    """One block per tile, one thread per pixel: A-buffer insert of the tile's fragments in
+    splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
+    batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float64)
+    rows = cuda.shared.array((PIXELS, 2), numba.int32)
+    counters = cuda.shared.array(2, numba.int64)
+    acc = cuda.local.array((1, MAX_SURFACES, N_ACC), numba.float64)
+    cnt = cuda.local.array(1, numba.int64)
+    t = cuda.blockIdx.x
+    tid = cuda.threadIdx.x
+    i = (t // n_tx) * TILE + tid // TILE
+    j = (t % n_tx) * TILE + tid % TILE
+    inside = i < height and j < width
+    cnt[0] = 0
+    if tid == 0:
+        counters[0] = 0
+        counters[1] = 0
+    frags = 0
+    overflows = 0
+    start, end = offsets[t], offsets[t + 1]
+    for base in range(start, end, PIXELS):
+        # the next PIXELS splats of the tile into shared memory, one per thread
+        if base + tid < end:
+            k = ids[base + tid]
+            for f in range(N_FIELDS):
+                batch[tid, f] = splats[k, f]
+            rows[tid, 0] = bbox[k, 2]
+            rows[tid, 1] = bbox[k, 3]
+        cuda.syncthreads()
+        if inside:
+            for s in range(min(PIXELS, end - base)):
+                if rows[s, 0] <= i and i <= rows[s, 1]:
+                    mx, my = batch[s, MX], batch[s, MY]
+                    c11, c12, c22 = batch[s, C11], batch[s, C12], batch[s, C22]
+                    j0, j1 = _row_pixel_range(i, mx, my, c11, c12, c22, cutoff,
+                                              int(batch[s, X0]), int(batch[s, X1]))
+                    if j0 <= j and j <= j1:
+                        q = _exponent(j + 0.5 - mx, i + 0.5 - my, c11, c12, c22)
+                        if q < cutoff:
+                            overflows += _insert_fragment(
+                                acc, cnt, 0, batch[s, AMP] * math.exp(-q), batch[s, RED],
+                                batch[s, GREEN], batch[s, BLUE], batch[s, ALPHA], batch[s, DEPTH],
+                                batch[s, ZLO], batch[s, ZHI])
+                            frags += 1
+        cuda.syncthreads()
+    if inside:
+        res = cuda.local.array(7, numba.float64)
+        order = cuda.local.array(MAX_SURFACES, numba.int64)
+        scratch = cuda.local.array(MAX_SURFACES, numba.float64)
+        _resolve_pixel(acc, cnt, 0, bg_r, bg_g, bg_b, res, order, scratch)
+        image[i, j, 0] = res[0]
+        image[i, j, 1] = res[1]
+        image[i, j, 2] = res[2]
+        image[i, j, 3] = res[3]
+        depth[i, j] = res[4]
+        weight[i, j] = res[5]
+    cuda.atomic.add(counters, 0, frags)
+    cuda.atomic.add(counters, 1, overflows)
+    cuda.syncthreads()
+    if tid == 0:
+        tile_stats[t, 0] = counters[0]
+        tile_stats[t, 1] = counters[1]
+
+
+# -- host side: buffers, scan, residency -----------------------------------------------------
+
+
+def _blocks(n: int, threads: int = THREADS) -> int:
+    return max(1, -(-n // threads))
+
+
+class _Workspace:
+    """Device buffers reused between frames (grown when too small), one per name."""
+
+    def __init__(self):
+        self._buffers: dict[str, object] = {}
+
+    def get(self, name: str, shape, dtype):
+        shape = tuple(int(s) for s in shape)
+        size = int(np.prod(shape))
+        buf = self._buffers.get(name)
+        if buf is None or buf.dtype != np.dtype(dtype) or buf.shape[0] < size:
+            buf = cuda.device_array(max(size, 1), dtype)
+            self._buffers[name] = buf
+        return buf[:size].reshape(shape)
+
+    def clear(self):
+        self._buffers.clear()
+
+
+_WS = _Workspace()
+
+
+def exclusive_scan(src, n: int, out, name: str = "scan") -> None:
+    """out[0] = 0, out[i + 1] = src[0] + ... + src[i] for i < n (int64; out has n + 1 rows)."""
+    n_blocks = _blocks(n, SCAN_BLOCK)
+    sums = _WS.get(f"{name}.sums", (n_blocks,), np.int64)
+    _scan_blocks[n_blocks, SCAN_BLOCK](src, n, out, sums)
+    if n_blocks > 1:
+        sum_offsets = _WS.get(f"{name}.offsets", (n_blocks + 1,), np.int64)
+        exclusive_scan(sums, n_blocks, sum_offsets, name + "+")
+        _scan_add[_blocks(n), THREADS](out, n, sum_offsets)
+
+
+def _scalar(device_array, index: int = 0) -> int:
+    return int(device_array[index : index + 1].copy_to_host()[0])
+
+
+def _upload(a: np.ndarray):
+    return cuda.to_device(np.ascontiguousarray(a))
+
+
+@dataclass
+class DeviceScene:
+    """A model's arrays on the GPU, and its hierarchy's when LOD is used."""
+
+    key: tuple
+    source: SplatSource  # every surfel, as ``splat.source.from_surfels`` gives it
+    raw: dict  # surfel arrays that ``gather_node`` reads (tangent, radius_v, weight)
+    tree: dict | None
+    tree_id: int | None
+
+
+def _array_key(surfels) -> tuple:
+    arrays = (surfels.positions, surfels.normals, surfels.radius, surfels.colors,
+              surfels.opacity, surfels.tangent, surfels.radius_v, surfels.weight)
+    return tuple((None if a is None else (a.__array_interface__["data"][0], a.shape))
+                 for a in arrays)
+
+
+TREE_ARRAYS = ("order", "start", "count", "center", "bound", "extent", "position", "normal",
+               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "level")
+
+
+def device_scene(surfels, tree=None) -> DeviceScene:
+    """The model (and ``tree``) on the GPU: uploaded once, kept on the ``Surfels`` object."""
+    from ..splat.source import from_surfels
+
+    key = _array_key(surfels)
+    scene = getattr(surfels, "_cuda_scene", None)
+    if scene is None or scene.key != key:
+        src = from_surfels(surfels)
+        empty = np.zeros(0, np.float32)
+        dev = SplatSource(*(_upload(a) if isinstance(a, np.ndarray) else a for a in src))
+        raw = {"tangent": _upload(surfels.tangent if surfels.is_elliptical else np.zeros((0, 3), np.float32)),
+               "radius_v": _upload(surfels.radius_v if surfels.is_elliptical else empty),
+               "weight": _upload(surfels.weight if surfels.weight is not None else empty)}
+        scene = DeviceScene(key=key, source=dev, raw=raw, tree=None, tree_id=None)
+        surfels._cuda_scene = scene
+    if tree is not None and scene.tree_id != id(tree):
+        scene.tree = {name: _upload(getattr(tree, name)) for name in TREE_ARRAYS}
+        scene.tree_id = id(tree)
+    return scene
+
+
+# -- host side: the stages -------------------------------------------------------------------
+
+
+def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> SplatSource:
+    """This frame's splats on the GPU: every surfel, or the LOD cut (render.select's twin)."""
+    from ..render import LOD_PALETTE, coc_coefficients
+
+    if not settings.lod:
+        return scene.source
+    d = scene.tree
+    n_nodes = len(tree)
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    ax, bx, ay, by = camera.screen_coefficients()
+    near = float(camera.frustum_lrbtn()[4])
+    view = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
+    thr2 = float(settings.lod_pixel_threshold) ** 2
+
+    # the cut, level by level (a level of a binary tree over N leaves has at most N nodes)
+    flags = _WS.get("lod.flags", (n_nodes,), np.uint8)
+    _fill[_blocks(n_nodes), THREADS](flags, 0)
+    fronts = [_WS.get("lod.front0", (tree.n_surfels,), np.int64),
+              _WS.get("lod.front1", (tree.n_surfels,), np.int64)]
+    n_next = _WS.get("lod.n_next", (1,), np.int64)
+    _fill[1, 1](fronts[0][:1], 0)  # the root
+    n_front = 1
+    while n_front:
+        _fill[1, 1](n_next, 0)
+        _lod_level[_blocks(n_front), THREADS](
+            fronts[0], n_front, fronts[1], n_next, flags, d["count"], d["center"], d["bound"],
+            d["extent"], d["position"], d["normal"], d["cone"], d["sigma_r2"], d["lod_cov"], view,
+            ax, bx, ay, by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
+            float(settings.cutoff), thr2, float(settings.lod_blur_fraction),
+            bool(settings.cull_backfaces))
+        n_front = _scalar(n_next)
+        fronts.reverse()
+
+    # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
+    position = _WS.get("lod.position", (n_nodes + 1,), np.int64)
+    exclusive_scan(flags, n_nodes, position, "lod.scan")
+    n = _scalar(position, n_nodes)
+    nodes = _WS.get("lod.nodes", (n,), np.int64)
+    _scatter_flagged[_blocks(n_nodes), THREADS](flags, position, nodes)
+
+    ell = surfels.is_elliptical
+    out = SplatSource(
+        positions=_WS.get("src.positions", (n, 3), np.float32),
+        normals=_WS.get("src.normals", (n, 3), np.float32),
+        colors=_WS.get("src.colors", (n, 3), np.float32),
+        opacity=_WS.get("src.opacity", (n,), np.float32),
+        tangents=_WS.get("src.tangents", (n if ell else 0, 3), np.float32),
+        ru=_WS.get("src.ru", (n,), np.float32), rv=_WS.get("src.rv", (n,), np.float32),
+        area=_WS.get("src.area", (n,), np.float32),
+        lod_cov=_WS.get("src.lod_cov", (n, 6), np.float32),
+        level=_WS.get("src.level", (n,), np.int8), material=surfels.material)
+    if n:
+        src = scene.source
+        _gather[_blocks(n), THREADS](
+            nodes, d["order"], d["start"], d["count"], d["position"], d["normal"], d["color"],
+            d["opacity"], d["area"], d["sigma_r2"], d["lod_cov"], d["level"], src.positions,
+            src.normals, src.colors, src.opacity, scene.raw["tangent"], src.ru,
+            scene.raw["radius_v"], scene.raw["weight"], ell, surfels.weight is not None,
+            out.positions, out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv,
+            out.area, out.lod_cov, out.level)
+    if settings.show_lod:
+        colors = _WS.get("src.level_colors", (n, 3), np.float32)
+        if n:
+            _level_colors[_blocks(n), THREADS](out.level, _palette(LOD_PALETTE), colors)
+        out = out._replace(colors=colors)
+    return out
+
+
+_PALETTES: dict = {}
+
+
+def _palette(palette: np.ndarray):
+    if "lod" not in _PALETTES:
+        _PALETTES["lod"] = _upload(palette)
+    return _PALETTES["lod"]
+
+
+def shade_cuda(source: SplatSource, camera, settings):
+    """Per-splat Phong on the GPU: (S, 3) float32 (render.shade_surfels' twin)."""
+    from ..splat.shade import light_arrays
+
+    if settings.shading == "none":
+        return source.colors
+    n = source.size
+    out = _WS.get("rgb", (n, 3), np.float32)
+    if n:
+        kinds, vecs, cols = light_arrays(tuple(settings.lights), camera)
+        m = source.material
+        _shade[_blocks(n), THREADS](
+            source.positions, source.normals, source.colors, _upload(np.asarray(camera.eye, np.float64)),
+            _upload(kinds), _upload(vecs), _upload(cols), float(m.ambient), float(m.diffuse),
+            float(m.specular), float(m.shininess), not settings.cull_backfaces, out)
+    return out
+
+
+def project_cuda(source: SplatSource, rgb, camera, lens, settings):
+    """EWA projection with the DOF blur on the GPU: splats, bbox, visible (render.project's twin)."""
+    from ..render import coc_coefficients
+
+    n = source.size
+    splats = _WS.get("splats", (n, N_FIELDS), np.float64)
+    bbox = _WS.get("bbox", (n, 4), np.int32)
+    visible = _WS.get("visible", (n,), np.bool_)
+    if n:
+        coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+        ax, bx, ay, by = camera.screen_coefficients()
+        view_t = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
+        cutoff = float(settings.cutoff)
+        analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
+        _project[_blocks(n), THREADS](
+            source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
+            rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
+            float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
+            float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
+            bool(settings.exact_normalization), analytic, splats, bbox, visible)
+    return splats, bbox, visible
+
+
+def bin_cuda(bbox, visible, camera):
+    """Tile lists on the GPU: (offsets (T + 1,) int64, ids (P,) int32, visible splats).
+
+    The splats of tile t = ty * n_tx + tx are ids[offsets[t]:offsets[t + 1]] in increasing
+    splat index, as raster.abuffer.bin_splats gives them for the whole image.
+    """
+    n = visible.shape[0]
+    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
+    n_tiles = n_tx * n_ty
+    counts = _WS.get("bin.counts", (n_tiles,), np.int64)
+    _fill[_blocks(n_tiles), THREADS](counts, 0)
+    n_visible = _WS.get("bin.n_visible", (1,), np.int64)
+    _fill[1, 1](n_visible, 0)
+    if n:
+        _count_pairs[_blocks(n), THREADS](bbox, visible, n_tx, counts, n_visible)
+    offsets = _WS.get("bin.offsets", (n_tiles + 1,), np.int64)
+    exclusive_scan(counts, n_tiles, offsets, "bin.scan")
+    n_pairs = _scalar(offsets, n_tiles)
+    if n_pairs >= 2**31:
+        from ..errors import DofsplatError
+
+        raise DofsplatError(f"{n_pairs} tile-splat pairs exceed the CUDA backend's int32 lists")
+    ids = _WS.get("bin.ids", (n_pairs,), np.int32)
+    if n_pairs:
+        cursor = _WS.get("bin.cursor", (n_tiles,), np.int64)
+        cursor.copy_to_device(offsets[:n_tiles])
+        _fill_pairs[_blocks(n), THREADS](bbox, visible, n_tx, cursor, ids)
+        _sort_tiles[n_tiles, THREADS](offsets, ids)
+    return offsets, ids, _scalar(n_visible)
+
+
+def rasterize_cuda(splats, bbox, offsets, ids, camera, settings):
+    """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats."""
+    w, h = camera.width, camera.height
+    n_tx, n_ty = -(-w // TILE), -(-h // TILE)
+    image = _WS.get("image", (h, w, 4), np.float32)
+    depth = _WS.get("depth", (h, w), np.float32)
+    weight = _WS.get("weight", (h, w), np.float32)
+    tile_stats = _WS.get("tile_stats", (n_tx * n_ty, 2), np.int64)
+    bg = [float(c) for c in settings.background]
+    _rasterize[n_tx * n_ty, PIXELS](splats, bbox, offsets, ids, n_tx, w, h, float(settings.cutoff),
+                                    bg[0], bg[1], bg[2], image, depth, weight, tile_stats)
+    return image, depth, weight, tile_stats
+
+
+# -- the frame --------------------------------------------------------------------------------
+
+
+@dataclass
+class DeviceFrame:
+    """A frame left on the GPU: device arrays (image (H, W, 4), depth, weight) and stats."""
+
+    image: object
+    depth: object
+    weight: object
+    stats: dict
+
+
+class _Clock:
+    """Stage times: CUDA events on a GPU (read once, at the end), wall time in the simulator."""
+
+    def __init__(self):
+        self.marks = []
+
+    def mark(self, name: str) -> None:
+        if SIMULATOR:
+            self.marks.append((name, time.perf_counter()))
+        else:
+            ev = cuda.event()
+            ev.record()
+            self.marks.append((name, ev))
+
+    def stages_ms(self) -> dict:
+        out = {}
+        for (_, a), (name, b) in zip(self.marks, self.marks[1:]):
+            if SIMULATOR:
+                ms = (b - a) * 1000.0
+            else:
+                b.synchronize()
+                ms = a.elapsed_time(b)
+            out[name] = out.get(name, 0.0) + ms
+        return out
+
+
+def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame:
+    """``render``'s pipeline on the GPU, the result left there (for timings and viewers)."""
+    from ..render import lod_tree
+
+    tree = lod_tree(surfels, hierarchy) if settings.lod else None
+    scene = device_scene(surfels, tree)
+    clock = _Clock()
+    clock.mark("start")
+    source = select_cuda(surfels, scene, tree, camera, lens, settings)
+    clock.mark("select_ms")
+    rgb = shade_cuda(source, camera, settings)
+    clock.mark("shade_ms")
+    blur_lens = None if settings.show_lod else lens
+    splats, bbox, visible = project_cuda(source, rgb, camera, blur_lens, settings)
+    clock.mark("project_ms")
+    offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
+    clock.mark("bin_ms")
+    image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, offsets, ids, camera, settings)
+    clock.mark("raster_ms")
+    frags, overflows = tile_stats.copy_to_host().sum(axis=0)
+    stats = {
+        "device": "cuda",
+        "points_in": int(len(surfels)),
+        "lod": bool(settings.lod),
+        "splats_selected": int(source.size),
+        "splats_rendered": int(n_visible),
+        "fragments": int(frags),
+        "abuffer_overflows": int(overflows),
+        "tile_pairs": int(ids.shape[0]),
+        "bands": 1,
+        "width": camera.width,
+        "height": camera.height,
+        **clock.stages_ms(),
+    }
+    return DeviceFrame(image=image, depth=depth, weight=weight, stats=stats)
+
+
+def render_cuda(surfels, camera, lens, settings, hierarchy=None):
+    """``render`` on the GPU: a ``RenderResult`` with host arrays (render.render calls this)."""
+    from ..render import RenderResult
+
+    warm_up()
+    t0 = time.perf_counter()
+    frame = render_frame(surfels, camera, lens, settings, hierarchy)
+    image = frame.image.copy_to_host()
+    depth = frame.depth.copy_to_host()
+    weight = frame.weight.copy_to_host()
+    frame.stats["total_ms"] = (time.perf_counter() - t0) * 1000.0
+    return RenderResult(image=image, depth=depth, weight=weight, stats=frame.stats)
+
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile every kernel once (one tiny frame with LOD), so that timings exclude the JIT.
+
+    Skipped under the simulator, where nothing is compiled and every thread is Python.
+    """
+    global _WARM
+    if _WARM or SIMULATOR:
+        return
+    _WARM = True
+    from ..camera import Camera, ThinLens
+    from ..render import RenderSettings
+    from ..surfels import Surfels
+
+    s = Surfels(positions=[[0, 0, 0], [0.1, 0, 0]], normals=[[0, 0, 1], [0, 0, 1]],
+                radius=[0.1, 0.1], colors=[[1, 1, 1], [1, 1, 1]])
+    cam = Camera(eye=(0, 0, 1), target=(0, 0, 0), width=8, height=8)
+    render_frame(s, cam, ThinLens(focus_distance=0.5, aperture=0.1), RenderSettings(device="cuda"))
