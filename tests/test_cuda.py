@@ -2,7 +2,8 @@
 
 The parity tests run on a GPU where one works, or on numba's CUDA simulator with
 ``DOFSPLAT_TEST_CUDASIM=1`` (every CUDA thread is a Python thread there: the scenes are
-tiny), and are skipped otherwise. The device-choice and CLI tests run everywhere.
+tiny), and are skipped otherwise; ``DOFSPLAT_REQUIRE_CUDA=1`` turns that skip into an error
+(for the GPU machine). The device-choice and CLI tests run everywhere.
 """
 
 import os
@@ -29,6 +30,9 @@ from conftest import front_camera, grid_surfels  # noqa: E402
 _PROBLEM = backends.cuda_problem()
 SIMULATOR = _PROBLEM is None and bool(numba.config.ENABLE_CUDASIM)
 GPU = _PROBLEM is None and not SIMULATOR
+if _PROBLEM is not None and os.environ.get("DOFSPLAT_REQUIRE_CUDA") == "1":
+    # on the GPU machine a broken setup must fail, not skip
+    raise RuntimeError(f"DOFSPLAT_REQUIRE_CUDA=1 but the CUDA backend cannot run: {_PROBLEM}")
 needs_cuda = pytest.mark.skipif(
     _PROBLEM is not None,
     reason=f"no CUDA GPU here ({_PROBLEM}); DOFSPLAT_TEST_CUDASIM=1 runs these tests on "

@@ -109,7 +109,8 @@ def square_mesh(n=4, size=1.0):
     x, y = (a.ravel() for a in np.meshgrid(g, g))
     vertices = np.stack([x, y, np.zeros_like(x)], axis=1)
     idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     return vertices, faces
 
@@ -600,7 +601,7 @@ def test_pcd_modes_and_packed_colour(tmp_path, mode, rgb_type, captured_points):
     rgb = packed_rgb(np.full(n, 255), np.arange(n), np.zeros(n))
     if rgb_type == "F":
         rgb = rgb.view(np.float32)  # PCL's float-packed rgb
-    path = tmp_path / f"c.pcd"
+    path = tmp_path / "c.pcd"
     path.write_bytes(pcd_bytes(["x", "y", "z", "rgb"], ["F", "F", "F", rgb_type], [4] * 4,
                                [pts[:, 0], pts[:, 1], pts[:, 2], rgb], mode=mode))
     header, columns = read_pcd_columns(path)

@@ -8,16 +8,18 @@ per node or per fragment is a ``shared`` (numba.njit) function whose ``.py_func`
 compiled here once more, as a CUDA device function, by ``device_twin``:
 
     project_splat (splat/project.py)  -> ewa.project_surfel, kernel_bbox, kernel_pixel_sum
-    shade_splat (splat/shade.py), gather_node and visit_node (lod/select.py)
+    shade_splat (splat/shade.py), visit_node and node_splat (lod/select.py)
     insert_fragment, resolve_pixel (raster/abuffer.py); ewa.row_pixel_range, ewa.exponent
 
 ``device_twin`` gives the copy of each function a globals dict in which the ``shared``
 functions it calls are their own device twins, so nested calls stay on the GPU. What is
 written here is only the parallel structure around those calls:
 
-* select: the hierarchy is cut breadth first, one thread per node of the current level
-  (``visit_node``), the next level's nodes appended with an atomic counter; the cut (a flag
-  per node) is compacted in node order by a prefix sum and gathered (``gather_node``);
+* select: the hierarchy is cut breadth first, one kernel per level of the tree, a thread
+  per node of the level (``visit_node``), the next level's nodes appended with an atomic
+  counter that stays on the GPU (no round trip per level); the cut, a flag per node, is
+  compacted in node order by a prefix sum and gathered (``node_splat``, the attributes
+  copied as ``gather_splats`` copies them);
 * shade, project: one thread per splat;
 * bin: tile-splat pairs counted per tile with atomics, offsets by a prefix sum, filled with
   atomics, then each tile's list sorted by splat index (a bitonic sort, one block per tile)
@@ -45,10 +47,10 @@ import numba
 import numpy as np
 from numba import cuda
 
-from ..lod.select import CULL, DESCEND, SELECT, gather_node, visit_node
+from ..lod.select import DESCEND, SELECT, node_splat, visit_node
 from ..raster.abuffer import MAX_SURFACES, N_ACC, TILE, insert_fragment, resolve_pixel
 from ..splat.ewa import exponent, row_pixel_range
-from ..splat.project import (AMP, ALPHA, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, N_FIELDS,
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, N_FIELDS,
                              RED, X0, X1, ZHI, ZLO, project_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
@@ -86,7 +88,7 @@ def device_twin(fn):
 _project_splat = device_twin(project_splat)
 _shade_splat = device_twin(shade_splat)
 _visit_node = device_twin(visit_node)
-_gather_node = device_twin(gather_node)
+_node_splat = device_twin(node_splat)
 _insert_fragment = device_twin(insert_fragment)
 _resolve_pixel = device_twin(resolve_pixel)
 _row_pixel_range = device_twin(row_pixel_range)
@@ -98,6 +100,7 @@ THREADS = 32 if SIMULATOR else 256  # threads per block of the one-thread-per-it
 PIXELS = TILE * TILE  # threads per block of the rasteriser: one per pixel of a tile
 SCAN_BLOCK = 32 if SIMULATOR else 256  # elements per block of the prefix sum
 SORT_SHARED = 64 if SIMULATOR else 4096  # tile lists up to this length are sorted in shared memory
+LOD_BLOCKS = 1024  # the LOD cut's grid at most (its kernel loops over a level's nodes)
 
 
 @cuda.jit
@@ -162,12 +165,15 @@ def _scatter_flagged(flags, position, nodes):
 
 
 @cuda.jit
-def _lod_level(frontier, n_front, next_frontier, n_next, flags, count, center, bound, extent,
+def _lod_level(depth, sizes, frontier, next_frontier, flags, count, center, bound, extent,
                position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
                height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces):
-    """One level of the breadth-first cut: visit each frontier node, flag or expand it."""
-    t = cuda.grid(1)
-    if t < n_front:
+    """Level ``depth`` of the breadth-first cut: visit each of its sizes[depth] nodes in
+    ``frontier``, flag it or append its children to ``next_frontier`` (sizes[depth + 1]).
+
+    A grid-stride loop over a size read on the GPU: the host launches one kernel per level
+    of the tree without waiting for the previous level's count."""
+    for t in range(cuda.grid(1), sizes[depth], cuda.gridsize(1)):
         i = frontier[t]
         what = _visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2,
                            lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
@@ -175,7 +181,7 @@ def _lod_level(frontier, n_front, next_frontier, n_next, flags, count, center, b
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
-            slot = cuda.atomic.add(n_next, 0, 2)
+            slot = cuda.atomic.add(sizes, depth + 1, 2)
             next_frontier[slot] = i + 1  # left child
             next_frontier[slot + 1] = i + 2 * (count[i] // 2)  # right child
 
@@ -185,12 +191,39 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
             lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
             elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
             out_rv, out_area, out_cov, out_level):
+    """Row t: node nodes[t] as a splat (lod/select.py's gather_splats, one thread per row)."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
-        _gather_node(t, nodes[t], order, start, count, position, normal, color, opacity, area,
-                     sigma_r2, lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
-                     s_weight, elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha,
-                     out_tan, out_ru, out_rv, out_area, out_cov, out_level)
+        i = nodes[t]
+        k, ru, rv, a = _node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
+                                   elliptical, has_weight)
+        if k >= 0:  # a leaf: its surfel, unchanged
+            for d in range(3):
+                out_pos[t, d] = s_pos[k, d]
+                out_nrm[t, d] = s_nrm[k, d]
+                out_col[t, d] = s_col[k, d]
+            out_alpha[t] = s_alpha[k]
+            if elliptical:
+                for d in range(3):
+                    out_tan[t, d] = s_tan[k, d]
+            for d in range(6):
+                out_cov[t, d] = 0.0
+            out_level[t] = 0
+        else:  # an inner node: its prefiltered attributes and LOD filter
+            for d in range(3):
+                out_pos[t, d] = position[i, d]
+                out_nrm[t, d] = normal[i, d]
+                out_col[t, d] = color[i, d]
+            out_alpha[t] = opacity[i]
+            if elliptical:
+                for d in range(3):
+                    out_tan[t, d] = 0.0  # derive the tangent from the normal
+            for d in range(6):
+                out_cov[t, d] = lod_cov[i, d]
+            out_level[t] = level[i]
+        out_ru[t] = ru
+        out_rv[t] = rv
+        out_area[t] = a
 
 
 @cuda.jit
@@ -336,12 +369,12 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
-                if rows[s, 0] <= i and i <= rows[s, 1]:
+                if rows[s, 0] <= i <= rows[s, 1]:
                     mx, my = batch[s, MX], batch[s, MY]
                     c11, c12, c22 = batch[s, C11], batch[s, C12], batch[s, C22]
                     j0, j1 = _row_pixel_range(i, mx, my, c11, c12, c22, cutoff,
                                               int(batch[s, X0]), int(batch[s, X1]))
-                    if j0 <= j and j <= j1:
+                    if j0 <= j <= j1:
                         q = _exponent(j + 0.5 - mx, i + 0.5 - my, c11, c12, c22)
                         if q < cutoff:
                             overflows += _insert_fragment(
@@ -477,24 +510,24 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> Sp
     view = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
     thr2 = float(settings.lod_pixel_threshold) ** 2
 
-    # the cut, level by level (a level of a binary tree over N leaves has at most N nodes)
+    # the cut, level by level (a level of a binary tree over N leaves has at most N nodes);
+    # sizes[d]: the number of nodes visited at depth d, the root alone at depth 0
     flags = _WS.get("lod.flags", (n_nodes,), np.uint8)
     _fill[_blocks(n_nodes), THREADS](flags, 0)
     fronts = [_WS.get("lod.front0", (tree.n_surfels,), np.int64),
               _WS.get("lod.front1", (tree.n_surfels,), np.int64)]
-    n_next = _WS.get("lod.n_next", (1,), np.int64)
+    sizes = _WS.get("lod.sizes", (tree.depth + 1,), np.int64)
+    _fill[_blocks(tree.depth + 1), THREADS](sizes, 0)
+    _fill[1, 1](sizes[:1], 1)
     _fill[1, 1](fronts[0][:1], 0)  # the root
-    n_front = 1
-    while n_front:
-        _fill[1, 1](n_next, 0)
-        _lod_level[_blocks(n_front), THREADS](
-            fronts[0], n_front, fronts[1], n_next, flags, d["count"], d["center"], d["bound"],
-            d["extent"], d["position"], d["normal"], d["cone"], d["sigma_r2"], d["lod_cov"], view,
-            ax, bx, ay, by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
-            float(settings.cutoff), thr2, float(settings.lod_blur_fraction),
-            bool(settings.cull_backfaces))
-        n_front = _scalar(n_next)
-        fronts.reverse()
+    grid = min(_blocks(tree.n_surfels), LOD_BLOCKS)
+    for depth in range(tree.depth):
+        _lod_level[grid, THREADS](
+            depth, sizes, fronts[depth % 2], fronts[1 - depth % 2], flags, d["count"],
+            d["center"], d["bound"], d["extent"], d["position"], d["normal"], d["cone"],
+            d["sigma_r2"], d["lod_cov"], view, ax, bx, ay, by, near, camera.width, camera.height,
+            float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
+            float(settings.lod_blur_fraction), bool(settings.cull_backfaces))
 
     # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
     position = _WS.get("lod.position", (n_nodes + 1,), np.int64)
@@ -631,7 +664,10 @@ def rasterize_cuda(splats, bbox, offsets, ids, camera, settings):
 
 @dataclass
 class DeviceFrame:
-    """A frame left on the GPU: device arrays (image (H, W, 4), depth, weight) and stats."""
+    """A frame left on the GPU: device arrays (image (H, W, 4), depth, weight) and stats.
+
+    The arrays are reused buffers: the next frame overwrites them (copy what you keep).
+    """
 
     image: object
     depth: object

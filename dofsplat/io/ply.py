@@ -1,4 +1,10 @@
-"""Surfel PLY files (ASCII or binary, optionally gzip-compressed), via ``plyfile``.
+"""PLY files (ASCII or binary, optionally gzip-compressed): surfels, and everything else.
+
+:func:`read_ply` (the loader for ``.ply`` and ``.ply.gz``) reads the header and dispatches
+(:func:`ply_kind`): surfel files to :func:`read_surfel_ply`, 3D Gaussian Splatting files to
+:mod:`dofsplat.io.gaussians`, meshes to :mod:`dofsplat.meshes`, bare points to
+:mod:`dofsplat.pointcloud` (docs/formats.md). Binary bodies are read by ``plyfile``, ASCII
+bodies by one numpy tokenisation (:func:`_read_ascii_body`).
 
 A surfel PLY has one ``vertex`` element with the properties
 

@@ -38,9 +38,10 @@ from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigen
 CULL, SELECT, DESCEND = 0, 1, 2
 SPLIT_DEPTH = 10  # 1024 subtrees for the parallel walk
 STACK = 96  # the median split keeps depth <= ceil(log2 N) + 1, far below this
-# normal-cone culling costs two inverse trigonometric functions: worth it only for nodes
-# that would save a sizeable subtree (small ones are culled per surfel by the projection)
-CONE_TEST_MIN_COUNT = 32
+# frustum and normal-cone culling cost square roots and inverse trigonometric functions:
+# worth it only for nodes that would save a sizeable subtree; the surfels of small ones are
+# culled exactly, one by one, by the projection
+CULL_TEST_MIN_COUNT = 32
 
 
 @shared
@@ -61,31 +62,32 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
     rad = np.float64(bound[i])
     if u + rad <= near:
         return CULL  # entirely behind the near plane
-    # frustum, widened by the largest blurred kernel's reach: a blurred splat just outside
-    # the image can still reach into it
-    u_near = max(u - rad, near)
-    coc_max = max(coc_radius_px(u_near, coc_k, inv_focus), coc_radius_px(u + rad, coc_k, inv_focus))
-    margin = math.sqrt(2.0 * cutoff * (dof_variance(coc_max) + 1.0)) + 1.0
-    # the truncated basis reaches sqrt(2c)/2 disk radii from the surfel's centre
-    reach = rad * max(1.0, 0.5 * math.sqrt(2.0 * cutoff))
-    s_left = (-margin - bx) / ax
-    s_right = (width + margin - bx) / ax
-    s_bottom = (by - height - margin) / ay
-    s_top = (by + margin) / ay
-    if (cx + s_left * cz) < -reach * math.sqrt(1.0 + s_left * s_left):
-        return CULL
-    if (-cx - s_right * cz) < -reach * math.sqrt(1.0 + s_right * s_right):
-        return CULL
-    if (cy + s_bottom * cz) < -reach * math.sqrt(1.0 + s_bottom * s_bottom):
-        return CULL
-    if (-cy - s_top * cz) < -reach * math.sqrt(1.0 + s_top * s_top):
-        return CULL
+    if count[i] >= CULL_TEST_MIN_COUNT:
+        # frustum, widened by the largest blurred kernel's reach: a blurred splat just outside
+        # the image can still reach into it
+        u_near = max(u - rad, near)
+        coc_max = max(coc_radius_px(u_near, coc_k, inv_focus), coc_radius_px(u + rad, coc_k, inv_focus))
+        margin = math.sqrt(2.0 * cutoff * (dof_variance(coc_max) + 1.0)) + 1.0
+        # the truncated basis reaches sqrt(2c)/2 disk radii from the surfel's centre
+        reach = rad * max(1.0, 0.5 * math.sqrt(2.0 * cutoff))
+        s_left = (-margin - bx) / ax
+        s_right = (width + margin - bx) / ax
+        s_bottom = (by - height - margin) / ay
+        s_top = (by + margin) / ay
+        if (cx + s_left * cz) < -reach * math.sqrt(1.0 + s_left * s_left):
+            return CULL
+        if (-cx - s_right * cz) < -reach * math.sqrt(1.0 + s_right * s_right):
+            return CULL
+        if (cy + s_bottom * cz) < -reach * math.sqrt(1.0 + s_bottom * s_bottom):
+            return CULL
+        if (-cy - s_top * cz) < -reach * math.sqrt(1.0 + s_top * s_top):
+            return CULL
 
     nwx, nwy, nwz = normal[i, 0], normal[i, 1], normal[i, 2]
     nx = view[0] * nwx + view[1] * nwy + view[2] * nwz
     ny = view[4] * nwx + view[5] * nwy + view[6] * nwz
     nz = view[8] * nwx + view[9] * nwy + view[10] * nwz
-    if cull_backfaces and count[i] >= CONE_TEST_MIN_COUNT:
+    if cull_backfaces and count[i] >= CULL_TEST_MIN_COUNT:
         dist = math.sqrt(cx * cx + cy * cy + cz * cz)
         if dist > rad and cone[i] < 0.5 * math.pi:
             # every normal in the cone faces away from every point of the sphere
@@ -198,41 +200,56 @@ def gather_splats(nodes, order, start, count, position, normal, color, opacity, 
     """
     for t in numba.prange(nodes.shape[0]):
         i = nodes[t]
-        if count[i] == 1:
-            k = order[start[i]]
+        k, ru, rv, a = node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
+                                  elliptical, has_weight)
+        if k >= 0:  # a leaf: its surfel, unchanged
             for d in range(3):
                 out_pos[t, d] = s_pos[k, d]
                 out_nrm[t, d] = s_nrm[k, d]
                 out_col[t, d] = s_col[k, d]
             out_alpha[t] = s_alpha[k]
-            ru = s_ru[k]
-            rv = ru
             if elliptical:
-                rv = s_rv[k]
                 for d in range(3):
                     out_tan[t, d] = s_tan[k, d]
-            a = ru * rv
-            if has_weight:
-                a *= s_weight[k]
-            out_ru[t] = ru
-            out_rv[t] = rv
-            out_area[t] = a
             for d in range(6):
                 out_cov[t, d] = 0.0
             out_level[t] = 0
-        else:
+        else:  # an inner node: its prefiltered attributes and LOD filter
             for d in range(3):
                 out_pos[t, d] = position[i, d]
                 out_nrm[t, d] = normal[i, d]
                 out_col[t, d] = color[i, d]
             out_alpha[t] = opacity[i]
-            r = 2.0 * math.sqrt(sigma_r2[i])
-            out_ru[t] = r
-            out_rv[t] = r
             if elliptical:
                 for d in range(3):
                     out_tan[t, d] = 0.0  # derive the tangent from the normal
-            out_area[t] = area[i]
             for d in range(6):
                 out_cov[t, d] = lod_cov[i, d]
             out_level[t] = level[i]
+        out_ru[t] = ru
+        out_rv[t] = rv
+        out_area[t] = a
+
+
+# inlined at numba's level: a per-node call passing eight arrays would cost more than the copy
+@numba.njit(cache=True, nogil=True, inline="always")
+def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
+               has_weight):
+    """Node i as a splat: (k, r_u, r_v, area), for ``gather_splats`` and the CUDA backend.
+
+    A leaf is its surfel k, unchanged (its radii, and the area r_u r_v weight it stands
+    for); an inner node (k = -1) is circular, with the leaf basis radius 2 sqrt(V^r), and
+    stands for its surfels' total area.
+    """
+    if count[i] == 1:
+        k = order[start[i]]
+        ru = s_ru[k]
+        rv = ru
+        if elliptical:
+            rv = s_rv[k]
+        a = ru * rv  # float32, as the surfels' own area (splat/source.py)
+        if has_weight:
+            a *= s_weight[k]
+        return k, np.float64(ru), np.float64(rv), np.float64(a)
+    r = 2.0 * math.sqrt(sigma_r2[i])
+    return -1, r, r, np.float64(area[i])

@@ -44,59 +44,72 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     view: (12,) rows of camera_from_world[:3]; the rest are scalars (see ewa.project_surfel).
     """
     n = positions.shape[0]
-    elliptical = tangents.shape[0] == n
-    has_lod = lod_cov.shape[0] == n
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
     for k in numba.prange(n):
-        visible[k] = False
-        p = (np.float64(positions[k, 0]), np.float64(positions[k, 1]), np.float64(positions[k, 2]))
-        nn = (np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2]))
-        t = (0.0, 0.0, 0.0)
-        if elliptical:
-            t = (np.float64(tangents[k, 0]), np.float64(tangents[k, 1]), np.float64(tangents[k, 2]))
-        cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        if has_lod:
-            cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
-                   np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
-        ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r = project_surfel(
-            p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
-            ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces)
-        if not ok:
-            continue
-        x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
-        cx0, cx1 = max(x0, 0), min(x1, width - 1)
-        cy0, cy1 = max(y0, 0), min(y1, height - 1)
-        if cx0 > cx1 or cy0 > cy1:
-            continue  # outside the view frustum
-        det = w11 * w22 - w12 * w12
-        c11, c12, c22 = w22 / det, -w12 / det, w11 / det
-        norm = 0.0
-        if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
-            norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1)
-        if norm > 0.0:
-            amp = area_px / norm
-        else:
-            amp = area_px * analytic / math.sqrt(det)
-        out[k, MX] = mx
-        out[k, MY] = my
-        out[k, C11] = c11
-        out[k, C12] = c12
-        out[k, C22] = c22
-        out[k, AMP] = amp
-        out[k, ZLO] = zlo
-        out[k, ZHI] = zhi
-        out[k, DEPTH] = depth
-        out[k, RED] = rgb[k, 0]
-        out[k, GREEN] = rgb[k, 1]
-        out[k, BLUE] = rgb[k, 2]
-        out[k, ALPHA] = alpha[k]
-        out[k, COC] = coc_r
-        out[k, X0] = x0  # unclipped bbox columns (ewa.row_pixel_range)
-        out[k, X1] = x1
-        bbox[k, 0] = cx0
-        bbox[k, 1] = cx1
-        bbox[k, 2] = cy0
-        bbox[k, 3] = cy1
-        visible[k] = True
+        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+                      cull_backfaces, exact_norm, analytic, out, bbox, visible)
+
+
+# inlined at numba's level, like gather_node: no per-splat call passing every array
+@numba.njit(cache=True, nogil=True, inline="always")
+def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+                  cull_backfaces, exact_norm, analytic, out, bbox, visible):
+    """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, analytic:
+    1 / (2 pi (1 - e^-c))). Shared with the CUDA backend, one thread per splat."""
+    n = positions.shape[0]
+    elliptical = tangents.shape[0] == n
+    has_lod = lod_cov.shape[0] == n
+    visible[k] = False
+    p = (np.float64(positions[k, 0]), np.float64(positions[k, 1]), np.float64(positions[k, 2]))
+    nn = (np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2]))
+    t = (0.0, 0.0, 0.0)
+    if elliptical:
+        t = (np.float64(tangents[k, 0]), np.float64(tangents[k, 1]), np.float64(tangents[k, 2]))
+    cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if has_lod:
+        cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
+               np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
+    ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r = project_surfel(
+        p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
+        ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces)
+    if not ok:
+        return
+    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
+    cx0, cx1 = max(x0, 0), min(x1, width - 1)
+    cy0, cy1 = max(y0, 0), min(y1, height - 1)
+    if cx0 > cx1 or cy0 > cy1:
+        return  # outside the view frustum
+    det = w11 * w22 - w12 * w12
+    c11, c12, c22 = w22 / det, -w12 / det, w11 / det
+    norm = 0.0
+    if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
+        norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1)
+    if norm > 0.0:
+        amp = area_px / norm
+    else:
+        amp = area_px * analytic / math.sqrt(det)
+    out[k, MX] = mx
+    out[k, MY] = my
+    out[k, C11] = c11
+    out[k, C12] = c12
+    out[k, C22] = c22
+    out[k, AMP] = amp
+    out[k, ZLO] = zlo
+    out[k, ZHI] = zhi
+    out[k, DEPTH] = depth
+    out[k, RED] = rgb[k, 0]
+    out[k, GREEN] = rgb[k, 1]
+    out[k, BLUE] = rgb[k, 2]
+    out[k, ALPHA] = alpha[k]
+    out[k, COC] = coc_r
+    out[k, X0] = x0  # unclipped bbox columns (ewa.row_pixel_range)
+    out[k, X1] = x1
+    bbox[k, 0] = cx0
+    bbox[k, 1] = cx1
+    bbox[k, 2] = cy0
+    bbox[k, 3] = cy1
+    visible[k] = True

@@ -47,32 +47,41 @@ def shade_fast(positions, normals, colors, material: Material, camera: Camera, l
 def _phong(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess,
            two_sided, out):
     for k in numba.prange(positions.shape[0]):
-        px, py, pz = positions[k, 0], positions[k, 1], positions[k, 2]
-        nx, ny, nz = np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2])
-        vx, vy, vz = eye[0] - px, eye[1] - py, eye[2] - pz
-        vl = max(math.sqrt(vx * vx + vy * vy + vz * vz), 1e-30)
-        vx, vy, vz = vx / vl, vy / vl, vz / vl
-        if two_sided and nx * vx + ny * vy + nz * vz < 0.0:
-            nx, ny, nz = -nx, -ny, -nz
-        r0 = ka * colors[k, 0]
-        r1 = ka * colors[k, 1]
-        r2 = ka * colors[k, 2]
-        for li in range(kinds.shape[0]):
-            lx, ly, lz = vecs[li, 0], vecs[li, 1], vecs[li, 2]
-            if kinds[li] == 1:
-                lx, ly, lz = lx - px, ly - py, lz - pz
-                ll = max(math.sqrt(lx * lx + ly * ly + lz * lz), 1e-30)
-                lx, ly, lz = lx / ll, ly / ll, lz / ll
-            ndotl = nx * lx + ny * ly + nz * lz
-            if ndotl <= 0.0:
-                continue
-            # reflection of the light direction about the normal
-            rx, ry, rz = 2 * ndotl * nx - lx, 2 * ndotl * ny - ly, 2 * ndotl * nz - lz
-            spec = ks * max(rx * vx + ry * vy + rz * vz, 0.0) ** shininess
-            d = kd * ndotl
-            r0 += cols[li, 0] * (d * colors[k, 0] + spec)
-            r1 += cols[li, 1] * (d * colors[k, 1] + spec)
-            r2 += cols[li, 2] * (d * colors[k, 2] + spec)
-        out[k, 0] = r0
-        out[k, 1] = r1
-        out[k, 2] = r2
+        shade_splat(k, positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess,
+                    two_sided, out)
+
+
+# inlined at numba's level, like gather_node: no per-splat call passing every array
+@numba.njit(cache=True, nogil=True, inline="always")
+def shade_splat(k, positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess,
+                two_sided, out):
+    """Phong colour of splat k into out[k] (``_phong``'s arguments); shared with the CUDA backend."""
+    px, py, pz = positions[k, 0], positions[k, 1], positions[k, 2]
+    nx, ny, nz = np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2])
+    vx, vy, vz = eye[0] - px, eye[1] - py, eye[2] - pz
+    vl = max(math.sqrt(vx * vx + vy * vy + vz * vz), 1e-30)
+    vx, vy, vz = vx / vl, vy / vl, vz / vl
+    if two_sided and nx * vx + ny * vy + nz * vz < 0.0:
+        nx, ny, nz = -nx, -ny, -nz
+    r0 = ka * colors[k, 0]
+    r1 = ka * colors[k, 1]
+    r2 = ka * colors[k, 2]
+    for li in range(kinds.shape[0]):
+        lx, ly, lz = vecs[li, 0], vecs[li, 1], vecs[li, 2]
+        if kinds[li] == 1:
+            lx, ly, lz = lx - px, ly - py, lz - pz
+            ll = max(math.sqrt(lx * lx + ly * ly + lz * lz), 1e-30)
+            lx, ly, lz = lx / ll, ly / ll, lz / ll
+        ndotl = nx * lx + ny * ly + nz * lz
+        if ndotl <= 0.0:
+            continue
+        # reflection of the light direction about the normal
+        rx, ry, rz = 2 * ndotl * nx - lx, 2 * ndotl * ny - ly, 2 * ndotl * nz - lz
+        spec = ks * max(rx * vx + ry * vy + rz * vz, 0.0) ** shininess
+        d = kd * ndotl
+        r0 += cols[li, 0] * (d * colors[k, 0] + spec)
+        r1 += cols[li, 1] * (d * colors[k, 1] + spec)
+        r2 += cols[li, 2] * (d * colors[k, 2] + spec)
+    out[k, 0] = r0
+    out[k, 1] = r1
+    out[k, 2] = r2
