@@ -4,20 +4,21 @@ The renderer uses a surface's accumulated splat weight as its coverage (Section 
 the splats must sum to 1 over the surface; on irregular sampling they do not, and
 per-pixel post-normalisation is not allowed (it would erase partial coverage). Instead each
 surfel gets a ``weight`` once, in preprocessing, that scales the area it stands for
-(``Surfels.weight``; a splat deposits area r_u * r_v * weight). Two ways to compute it:
+(``Surfels.weight``: a splat deposits the area r_u * r_v * weight). Two ways to compute it:
 
-* ``method="render"``, the paper's: render the model from several directions with a large
-  cutoff (c = 4, so that truncation does not matter), read each surfel's accumulated weight
-  at its own pixel, and divide its weight by it (:func:`render_weights`);
 * ``method="object"``, the "specialised tool" the paper wishes for: evaluate the
-  neighbours' basis functions in each surfel's tangent plane, with a k-d tree, and divide by
-  the sum (:func:`object_weights`). No rendering, no resolution, every surfel seen.
+  neighbours' basis functions in each surfel's tangent plane, found with a k-d tree, and
+  divide the surfel's weight by their sum (:func:`object_weights`). No rendering, no
+  resolution, every surfel reached, a few seconds for 400k surfels;
+* ``method="render"``, the paper's: render the model from several directions with a large
+  cutoff (c = 4, so that truncation does not matter), read each surfel's accumulated
+  weight at its own pixel and divide its weight by it (:func:`render_weights`).
 
-Both can iterate w <- w / S(w), S the sum at each surfel; a fixed point is exactly a
-partition of unity at the surfel centres.
-
-:func:`uniformity` measures the result the paper's way: the fraction of interior surface
-pixels of a render whose accumulated weight (``RenderResult.weight``) lies in 1 +- 0.1.
+Both iterate w <- w / S(w), S the sum at each surfel; a fixed point is a partition of unity
+at the surfel centres (the paper does one step). :func:`uniformity` measures the result
+the paper's way: the fraction of interior surface pixels of a render whose accumulated
+weight (``RenderResult.weight``) lies in 1 +- 0.1. docs/maths.md says more;
+bench/uniformity.py measures both methods on the dragon, the lion and the plane.
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ from .surfels import Surfels
 METHODS = ("none", "object", "render")
 NORMALISATION_CUTOFF = 4.0  # c for the normalisation kernels: the paper's 3.5 - 4
 OBJECT_NEIGHBOURS = 32  # candidates per surfel for the object-space sums
-OBJECT_ITERATIONS = 3  # w <- w / S(w) steps (measured: bench/uniformity.py)
+OBJECT_ITERATIONS = 10  # w <- w / S(w) steps: the dragon at 512^2 reads 0.75 after 1, 0.95 after 3, 0.97 after 10
+OBJECT_SMOOTH = 0.5  # footprint averaging of the object-space sums (object_weights)
 RENDER_VIEWS = 14  # directions on a Fibonacci sphere
 RENDER_ITERATIONS = 2
 RENDER_MAX_SIZE = 2048  # pixels per side of a normalisation render
@@ -49,13 +51,15 @@ def normalise(surfels: Surfels, method: str = "object", *, progress: bool = True
     """The model with per-surfel normalisation weights, by ``method`` ("none", "object",
     "render"); options go to :func:`object_weights` or :func:`render_weights`.
 
-    "none" returns the model without weights (weight None: each surfel stands for r_u r_v).
+    "none" returns the model as it is.
     """
     if method not in METHODS:
         raise DofsplatError(f"unknown normalisation {method!r}; choose one of "
                             f"{', '.join(METHODS)}")
     if method == "none":
-        return replace(surfels, weight=None)
+        if options:
+            raise DofsplatError(f"normalisation 'none' takes no options, got {sorted(options)}")
+        return surfels
     if method == "object":
         weight = object_weights(surfels, progress=progress, **options)
     else:
@@ -67,76 +71,84 @@ def normalise(surfels: Surfels, method: str = "object", *, progress: bool = True
 
 
 def object_weights(surfels: Surfels, *, iterations: int = OBJECT_ITERATIONS,
-                   neighbours: int = OBJECT_NEIGHBOURS, cutoff: float = NORMALISATION_CUTOFF,
-                   smooth: float = 1.0, progress: bool = True) -> np.ndarray:
+                   neighbours: int = OBJECT_NEIGHBOURS, smooth: float = OBJECT_SMOOTH,
+                   progress: bool = True) -> np.ndarray:
     """Object-space normalisation weights, (N,) float32.
 
     For each surfel k, S_k = sum_j a_j w_j G_j(p_k): the basis function of each neighbour
-    j (a Gaussian with standard deviations r_u/2, r_v/2 in j's tangent plane, truncated at
-    cutoff c and divided by 1 - e^-c, scaled by j's area a_j = r_u r_v) evaluated at p_k
-    projected into j's plane. Neighbours that face away (n_j . n_k <= 0) or lie off j's
-    plane by more than j's radius belong to another sheet and do not count, as the
-    renderer's culling and z-ranges would keep them apart. Then w_k <- w_k / S_k,
-    ``iterations`` times (starting from the model's weights, or 1). Candidates are the
-    ``neighbours`` nearest surfels of each.
+    j (a Gaussian with standard deviations r_u/2, r_v/2 in j's tangent plane, not
+    truncated: the paper's "large cutoff"; the renderer normalises each truncated kernel
+    to its full area), scaled by the area j stands for (a_j = r_u r_v times its weight
+    w_j), evaluated at p_k projected into j's plane. Neighbours that face
+    away (n_j . n_k <= 0) or lie off j's plane by more than j's radius belong to another
+    sheet and do not count, as the renderer's culling and z-ranges keep them apart. Then
+    w_k <- w_k / S_k, ``iterations`` times, starting from the model's weights (or 1).
+
+    neighbours: candidates per surfel (its nearest surfels, itself included)
+    smooth:     0 evaluates the sum at p_k; s > 0 averages it over a Gaussian around p_k of
+                variance s x (the area k stands for) / 4 (s = 1: k's own basis function,
+                the normal equations of a least-squares fit of the sum to 1). Point values
+                overshoot between irregular samples, and even on a square grid of r = h
+                they read 1.029 (the lattice sum of Gaussians of sigma h/2); s = 0.5 reads
+                1.002 there, and on the dragon it is within 0.3 % of s = 1 and 1 % above
+                s = 0 (on the lion 3 % below s = 0; bench/RESULTS.md).
     """
     n = len(surfels)
     iterations = _positive_int(iterations, "iterations")
-    neighbours = _positive_int(neighbours, "neighbours")
-    _, idx = _neighbour_candidates(surfels, min(neighbours, n - 1) + 1, progress)
-    args = _object_arrays(surfels)
-    weight = _initial_weight(surfels)
-    svar = smooth * 0.25 * args[3] * args[4] * weight
-    sums = np.empty(n, np.float64)
-    for _ in range(iterations):
-        _object_sums_kernel(*args, weight, idx, float(cutoff), svar, sums)
-        weight = weight / np.maximum(sums, 1e-12)
+    with _progress(iterations + 1, "normalise (object)", progress and n > 65536,
+                   unit="step") as bar:
+        idx, args, smooth_var = _object_setup(surfels, neighbours, smooth)
+        bar.update()
+        weight = _initial_weight(surfels)
+        sums = np.empty(n, np.float64)
+        for _ in range(iterations):
+            _object_sums_kernel(*args, weight, idx, smooth_var, sums)
+            weight = weight / np.maximum(sums, 1e-12)
+            bar.update()
     return weight.astype(np.float32)
 
 
 def object_sums(surfels: Surfels, weight=None, *, neighbours: int = OBJECT_NEIGHBOURS,
-                cutoff: float = NORMALISATION_CUTOFF, smooth: float = 1.0) -> np.ndarray:
-    """S_k = sum_j a_j w_j G_j(p_k) at every surfel, (N,) float64 (see object_weights)."""
-    n = len(surfels)
-    _, idx = _neighbour_candidates(surfels, min(neighbours, n - 1) + 1, False)
+                smooth: float = OBJECT_SMOOTH) -> np.ndarray:
+    """S_k = sum_j a_j w_j G_j(p_k) at every surfel, (N,) float64 (see object_weights).
+
+    weight: (N,) the w_j to use (default: the model's weights, or 1).
+    """
+    idx, args, smooth_var = _object_setup(surfels, neighbours, smooth)
     w = _initial_weight(surfels) if weight is None else np.asarray(weight, np.float64)
-    out = np.empty(n, np.float64)
-    args = _object_arrays(surfels)
-    svar = smooth * 0.25 * args[3] * args[4] * _initial_weight(surfels)
-    _object_sums_kernel(*args, w, idx, float(cutoff), svar, out)
+    out = np.empty(len(surfels), np.float64)
+    _object_sums_kernel(*args, w, idx, smooth_var, out)
     return out
 
 
 def object_sums_slow(surfels: Surfels, weight=None, *, neighbours: int = OBJECT_NEIGHBOURS,
-                     cutoff: float = NORMALISATION_CUTOFF) -> np.ndarray:
-    """numpy twin of :func:`object_sums`, written from the formula."""
+                     smooth: float = OBJECT_SMOOTH) -> np.ndarray:
+    """numpy twin of :func:`object_sums`, written from the formula in explicit frames."""
     from .surfels import tangent_frame
 
-    n = len(surfels)
-    _, idx = _neighbour_candidates(surfels, min(neighbours, n - 1) + 1, False)
+    idx, _, _ = _object_setup(surfels, neighbours, smooth)
     w = _initial_weight(surfels) if weight is None else np.asarray(weight, np.float64)
     p = surfels.positions.astype(np.float64)
     nrm = surfels.normals.astype(np.float64)
-    if surfels.is_elliptical:
-        tu = surfels.tangent.astype(np.float64)
-        rv = surfels.radius_v.astype(np.float64)
-    else:
-        tu = tangent_frame(nrm)[0].astype(np.float64)
-        rv = surfels.radius.astype(np.float64)
-    tv = np.cross(nrm, tu)
     ru = surfels.radius.astype(np.float64)
-    valid = idx < n
-    j = np.where(valid, idx, 0)
+    if surfels.is_elliptical:
+        tu, rv = surfels.tangent.astype(np.float64), surfels.radius_v.astype(np.float64)
+    else:
+        tu, rv = tangent_frame(nrm)[0].astype(np.float64), ru
+    tv = np.cross(nrm, tu)
+    smooth_var = smooth * 0.25 * ru * rv * _initial_weight(surfels)  # receiver k's
+    j = idx
     d = p[:, None, :] - p[j]  # (N, m, 3): p_k - p_j
-    u = np.sum(d * tu[j], axis=2)
+    u = np.sum(d * tu[j], axis=2)  # p_k in j's tangent frame
     v = np.sum(d * tv[j], axis=2)
     h = np.sum(d * nrm[j], axis=2)
-    facing = np.sum(nrm[:, None, :] * nrm[j], axis=2)
-    e = 0.5 * ((u / (ru[j] / 2)) ** 2 + (v / (rv[j] / 2)) ** 2)
-    ok = valid & (facing > 0) & (np.abs(h) <= np.maximum(ru[j], rv[j])) & (e < cutoff)
-    a = ru[j] * rv[j]
-    g = np.exp(-e) / (2 * np.pi * (ru[j] / 2) * (rv[j] / 2) * (1 - np.exp(-cutoff)))
-    return np.sum(np.where(ok, a * w[j] * g, 0.0), axis=1)
+    var_u = (ru[j] / 2) ** 2 + smooth_var[:, None]
+    var_v = (rv[j] / 2) ** 2 + smooth_var[:, None]
+    e = 0.5 * (u * u / var_u + v * v / var_v)
+    same_sheet = (np.sum(nrm[:, None, :] * nrm[j], axis=2) > 0) & (np.abs(h) <= np.maximum(ru[j], rv[j]))
+    g = np.exp(-e) / (2 * np.pi * np.sqrt(var_u * var_v))
+    area = ru[j] * rv[j] * w[j]
+    return np.sum(np.where(same_sheet, area * g, 0.0), axis=1)
 
 
 # -- in screen space, the paper's way ---------------------------------------------------
@@ -301,21 +313,20 @@ def uniformity(result, camera=None, *, tolerance: float = TOLERANCE, erode: int 
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _object_sums_kernel(positions, normals, tangents, ru, rv, weight, idx, cutoff, smooth_var, out):
+def _object_sums_kernel(positions, normals, tangents, ru, rv, weight, idx, smooth_var, out):
     """out[k] = sum_j a_j w_j G_j(p_k) over the candidates idx[k] (see object_weights).
 
-    With a_j = ru rv and G_j's normalisation 1 / (2 pi (ru/2)(rv/2)(1 - e^-c)), each term is
-    (2 / pi) w_j exp(-e) / (1 - e^-c): the radii cancel.
+    G_j has the variances (ru_j/2)^2 + smooth_var[k] and (rv_j/2)^2 + smooth_var[k] along
+    j's tangents t_j and n_j x t_j (isotropic for disks, where the frame does not matter):
+    its value at p_k is exp(-e) / (2 pi sqrt(var_u var_v)).
     """
     n, m = idx.shape
     elliptical = tangents.shape[0] == n
-    scale = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
+    scale = 1.0 / (2.0 * math.pi)
     for k in numba.prange(n):
         s = 0.0
         for a in range(m):
             j = idx[k, a]
-            if j >= n:  # cKDTree's "no neighbour"
-                continue
             nx, ny, nz = normals[j, 0], normals[j, 1], normals[j, 2]
             if nx * normals[k, 0] + ny * normals[k, 1] + nz * normals[k, 2] <= 0:
                 continue
@@ -338,8 +349,7 @@ def _object_sums_kernel(positions, normals, tangents, ru, rv, weight, idx, cutof
             else:
                 q = max(dx * dx + dy * dy + dz * dz - h * h, 0.0)
                 e = 0.5 * q / su2
-            if e < cutoff:
-                s += weight[j] * ru[j] * rv[j] * math.exp(-e) / math.sqrt(su2 * sv2)
+            s += weight[j] * ru[j] * rv[j] * math.exp(-e) / math.sqrt(su2 * sv2)
         out[k] = s * scale
 
 
@@ -352,11 +362,21 @@ def _object_arrays(surfels: Surfels):
     return p, nrm, np.zeros((0, 3)), ru, ru
 
 
-def _neighbour_candidates(surfels: Surfels, m: int, progress: bool):
+def _object_setup(surfels: Surfels, neighbours: int, smooth: float):
+    """Candidate neighbours (N, m), kernel arrays, and the receivers' smoothing variances."""
     from .pointcloud import nearest_neighbours
 
-    return nearest_neighbours(surfels.positions.astype(np.float64), m - 1, progress=progress,
-                              desc="normalise: neighbours")
+    neighbours = _positive_int(neighbours, "neighbours")
+    if not (math.isfinite(smooth) and smooth >= 0):
+        raise DofsplatError(f"smooth must be a number >= 0, got {smooth!r}")
+    m = min(neighbours, len(surfels) - 1)
+    if m < 1:
+        idx = np.zeros((len(surfels), 1), np.int64)
+    else:
+        _, idx = nearest_neighbours(surfels.positions.astype(np.float64), m)
+    args = _object_arrays(surfels)
+    smooth_var = smooth * 0.25 * args[3] * args[4] * _initial_weight(surfels)
+    return idx, args, smooth_var
 
 
 def _initial_weight(surfels: Surfels) -> np.ndarray:
@@ -381,9 +401,9 @@ def _positive_int(value, name: str) -> int:
     return int(value)
 
 
-def _progress(total: int, desc: str, enabled: bool):
+def _progress(total: int, desc: str, enabled: bool, unit: str = "view"):
     from tqdm import tqdm
 
     show = enabled and total > 1 and sys.stderr.isatty()
-    return tqdm(total=total, desc=desc, unit="view", file=sys.stderr, disable=not show,
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=not show,
                 leave=False)

@@ -15,16 +15,22 @@ neighbours (scipy's k-d tree), in four steps:
    kNN graph with edge cost 1 - |n_i . n_j| carries the sign from a root whose
    orientation is known, the point farthest from its component's centroid, whose
    outward normal points away from the centroid;
-4. **radii** from a density estimate: a smooth kernel density over the k neighbours gives
-   the local number of points per unit area rho, and each surfel stands for the area
-   1 / rho, so r = 1 / sqrt(rho) (``surfel_radii``). The kernel is
-   exp(-d^2 / 2s^2) - exp(-R^2 / 2s^2) on the disk of radius R = the distance to the k-th
-   neighbour, s = R / 2, divided by its integral: it falls to zero at R, so points tied at
-   distance R (common on grids) do not matter, and a Gaussian-like kernel as wide as a
-   few spacings sums to the density on any regular lattice to about 1 %. A regular grid of
-   spacing h therefore gets r = h (the convention of ``surfels.py``: a surfel stands for the
-   area r^2); random (Poisson) sampling gets radii about 6 % too small, which the
-   per-point normalisation (``dofsplat.normalise``) absorbs.
+4. **radii and areas** (``surfel_radii``). Each surfel stands for the area 1 / rho, rho
+   the local number of points per unit area from a smooth kernel density over the k
+   neighbours: exp(-d^2 / 2s^2) - exp(-R^2 / 2s^2) on the disk of radius R = the distance
+   to the k-th neighbour, s = R / 2, divided by its integral. The kernel falls to zero at
+   R, so points tied at distance R (common on grids) do not matter, and on any regular
+   lattice it sums to the density within about 1.5 %. The disk must also *cover* the
+   surface: irregular samples leave gaps that disks of area 1 / rho do not reach (visible
+   holes). So the radius is r = max(sqrt(1 / rho), sqrt(2) x the distance to the farthest
+   corner of the point's Voronoi cell among its neighbours, in its tangent plane), and
+   ``Surfels.weight`` = (1 / rho) / r^2 <= 1 keeps the area right (a splat deposits
+   r^2 x weight). On a square grid of spacing h both terms are h (the corners are at
+   h / sqrt(2)): r = h and weight = 1, the convention of ``surfels.py``. Radii are capped
+   near outliers (a few points far from the rest).
+
+The per-point normalisation (``dofsplat.normalise``) then corrects the weights so that the
+splats sum to 1 over the surface.
 
 All steps are vectorised or jitted; the 437k-point dragon takes a few seconds on two cores.
 """
@@ -43,17 +49,18 @@ from .surfels import Surfels
 
 DEFAULT_K = 16  # neighbours for PCA and density: enough for a stable plane fit on scans
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
-ORIENT_K = 8  # neighbours per point in the orientation graph (a sparser graph is faster)
+ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
 CLUSTER_RADIUS_FACTOR = 2.0  # radius <= this x the distance to the 4th neighbour
 OUTLIER_RADIUS_FACTOR = 4.0  # radius <= this x the median radius of the cloud
+VORONOI_NEIGHBOURS = 10  # neighbours that cut a point's Voronoi cell (coverage radius)
 MID_GREY = 0.2140  # linear value of the sRGB mid grey 0.5: the colour of uncoloured points
 QUERY_CHUNK = 1 << 16  # points per k-d tree query, the unit of the progress bar
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
                       viewpoint=None, progress: bool = True, source: str = "points") -> Surfels:
-    """Surfels from a bare point cloud: PCA normals, orientation, radii from the density.
+    """Surfels from a bare point cloud: PCA normals, orientation, radii and areas.
 
     positions: (N, 3) float, world units
     colors:    (N, 3) float, linear RGB in [0, 1], or None for mid grey (sRGB 0.5)
@@ -68,8 +75,10 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     source:    name for messages (e.g. the file name)
 
     Rows with NaN or inf positions are dropped with a warning; exact duplicate positions
-    are merged (colours averaged). Raises DofsplatError for fewer than 3 distinct points or
-    malformed arrays. Returns ``Surfels`` with weight None (see ``dofsplat.normalise``).
+    are merged (colours averaged, the first normal kept). Raises DofsplatError for fewer
+    than 3 distinct points or malformed arrays. Returns ``Surfels`` whose ``weight`` is
+    the area each surfel stands for over r^2 (module docstring, step 4); normalise them
+    with ``dofsplat.normalise.normalise``.
     """
     pts, cols, nrm = _check_inputs(positions, colors, normals, source)
     pts, cols, nrm = _merge_duplicates(pts, cols, nrm, source)
@@ -84,27 +93,38 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
         if vp.shape != (3,) or not np.all(np.isfinite(vp)):
             raise DofsplatError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
 
-    dist, idx = nearest_neighbours(pts, k, progress=progress, desc=f"{source}: neighbours")
+    with _stage_bar(4, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
+        bar.set_postfix_str("neighbours")
+        dist, idx = nearest_neighbours(pts, k)
+        bar.update()
 
-    given = np.zeros(n, bool)
-    if nrm is not None:
-        lengths = np.linalg.norm(nrm, axis=1)
-        given = np.isfinite(lengths) & (lengths > 1e-12)
-    normals_out = np.empty((n, 3), np.float64)
-    if not given.all():
-        normals_out[:] = pca_normals(pts, idx)
-    if given.any():
-        normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
-    if vp is not None:
-        normals_out = orient_towards(pts, normals_out, vp)
-    elif not given.all():
-        normals_out = orient_normals(pts, normals_out, idx[:, 1:min(k, ORIENT_K) + 1],
-                                     fixed=given)
+        bar.set_postfix_str("normals")
+        given = np.zeros(n, bool)
+        if nrm is not None:
+            lengths = np.linalg.norm(nrm, axis=1)
+            given = np.isfinite(lengths) & (lengths > 1e-12)
+        normals_out = np.empty((n, 3), np.float64)
+        if not given.all():
+            normals_out[:] = pca_normals(pts, idx)
+        if given.any():
+            normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
+        bar.update()
 
-    radius = surfel_radii(dist)
+        bar.set_postfix_str("orientation")
+        if vp is not None:
+            normals_out = orient_towards(pts, normals_out, vp)
+        elif not given.all():
+            normals_out = orient_normals(pts, normals_out, idx[:, 1:min(k, ORIENT_K) + 1],
+                                         fixed=given)
+        bar.update()
+
+        bar.set_postfix_str("radii")
+        radius, area_weight = surfel_radii(pts, normals_out, dist, idx)
+        bar.update()
     if cols is None:
         cols = np.full((n, 3), MID_GREY, np.float32)
-    return Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols)
+    return Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols,
+                   weight=area_weight)
 
 
 # -- steps -------------------------------------------------------------------------------
@@ -172,7 +192,11 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     away from the centroid (outward for a closed surface).
     """
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.sparse.csgraph import (
+        breadth_first_order,
+        connected_components,
+        minimum_spanning_tree,
+    )
 
     n, m = idx.shape
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
@@ -217,12 +241,21 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     return normals * signs[:, None]
 
 
-def surfel_radii(dist: np.ndarray) -> np.ndarray:
-    """Disk radii from neighbour distances: r = 1 / sqrt(rho), (N,) float64.
+def surfel_radii(positions: np.ndarray, normals: np.ndarray, dist: np.ndarray,
+                 idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Disk radii that cover the surface, and the area each surfel stands for.
 
-    dist: (N, k+1) distances to the point itself (0) and its k nearest neighbours, sorted.
-    rho is a smooth kernel density (points per unit area) over the neighbours (module
-    docstring); a regular grid of spacing h gets r = h to about 1.5 %.
+    positions, normals: (N, 3) float64; dist, idx: (N, k+1) from ``nearest_neighbours``.
+    Returns (radius (N,), area_weight (N,)), area_weight = area / radius^2 <= 1 being the
+    ``Surfels.weight`` that makes each surfel stand for its area (module docstring):
+
+    * area = 1 / rho from the smooth kernel density; r_area = sqrt(area);
+    * coverage: r_cover = sqrt(2) x the distance to the farthest corner of the point's
+      Voronoi cell among its neighbours, in its tangent plane; on a square grid of spacing
+      h the corners are at h / sqrt(2), so r_cover = h = r_area, and a surface sampled
+      irregularly gets the wider disks its gaps need (NaN at the edge of a scan: r_area);
+    * radius = max(r_area, r_cover), both capped at ``CLUSTER_RADIUS_FACTOR`` x the
+      distance to the 4th neighbour and ``OUTLIER_RADIUS_FACTOR`` x the median r_area.
     """
     reach = dist[:, -1:]  # > 0: duplicates are merged before the query
     s2 = (reach / DENSITY_BANDWIDTH) ** 2
@@ -230,13 +263,23 @@ def surfel_radii(dist: np.ndarray) -> np.ndarray:
     q = 0.5 * DENSITY_BANDWIDTH ** 2
     integral = 2 * math.pi * s2[:, 0] * (1 - math.exp(-q) * (1 + q))
     rho = np.clip(phi, 0, None).sum(axis=1) / integral
-    radius = 1.0 / np.sqrt(rho)
+    r_area = 1.0 / np.sqrt(rho)
+
+    corner = np.empty(len(positions), np.float64)
+    m = min(dist.shape[1], VORONOI_NEIGHBOURS + 1)
+    _cell_reach_kernel(np.ascontiguousarray(positions, np.float64),
+                       np.ascontiguousarray(normals, np.float64),
+                       np.ascontiguousarray(idx[:, :m], np.int64), corner)
+    r_cover = math.sqrt(2.0) * corner
+
     # outliers: a small cluster far from everything has its k-th neighbour, hence the
     # kernel, far away; keep its disks within a few of its own spacings, and lone fliers
     # within a few typical radii
-    m = min(4, dist.shape[1] - 1)
-    radius = np.minimum(radius, CLUSTER_RADIUS_FACTOR * dist[:, m])
-    return np.minimum(radius, OUTLIER_RADIUS_FACTOR * np.median(radius))
+    limit = np.minimum(CLUSTER_RADIUS_FACTOR * dist[:, min(4, dist.shape[1] - 1)],
+                       OUTLIER_RADIUS_FACTOR * np.median(r_area))
+    r_area = np.minimum(r_area, limit)
+    radius = np.minimum(np.fmax(r_area, r_cover), limit)  # fmax: NaN -> r_area
+    return radius, (r_area / radius) ** 2
 
 
 # -- numba kernels and helpers -----------------------------------------------------------
@@ -317,6 +360,70 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return x / norm, y / norm, z / norm
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _cell_reach_kernel(positions, normals, idx, out):
+    """Distance from each point to the farthest corner of its Voronoi cell in its tangent plane.
+
+    The cell is cut by the bisectors of the neighbours idx[p, 1:] projected into the plane;
+    its corners are the pairwise bisector intersections that satisfy every bisector. An
+    open cell (the neighbours all on one side: the edge of a scan) gives NaN.
+    """
+    n, m = idx.shape
+    for p in numba.prange(n):
+        nx, ny, nz = normals[p, 0], normals[p, 1], normals[p, 2]
+        # tangent frame: cross the normal with the axis it is least aligned with
+        ax, ay, az = abs(nx), abs(ny), abs(nz)
+        if ax <= ay and ax <= az:
+            ux, uy, uz = 0.0, nz, -ny
+        elif ay <= az:
+            ux, uy, uz = -nz, 0.0, nx
+        else:
+            ux, uy, uz = ny, -nx, 0.0
+        ul = math.sqrt(ux * ux + uy * uy + uz * uz)
+        ux, uy, uz = ux / ul, uy / ul, uz / ul
+        vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+        qx = np.empty(m - 1)
+        qy = np.empty(m - 1)
+        ang = np.empty(m - 1)
+        for a in range(1, m):
+            j = idx[p, a]
+            dx = positions[j, 0] - positions[p, 0]
+            dy = positions[j, 1] - positions[p, 1]
+            dz = positions[j, 2] - positions[p, 2]
+            qx[a - 1] = ux * dx + uy * dy + uz * dz
+            qy[a - 1] = vx * dx + vy * dy + vz * dz
+            ang[a - 1] = math.atan2(qy[a - 1], qx[a - 1])
+        ang.sort()
+        gap = ang[0] + 2.0 * math.pi - ang[m - 2]
+        for a in range(1, m - 1):
+            gap = max(gap, ang[a] - ang[a - 1])
+        if gap >= math.pi:
+            out[p] = np.nan
+            continue
+        reach = 0.0
+        for a in range(m - 1):
+            ca = 0.5 * (qx[a] * qx[a] + qy[a] * qy[a])
+            for b in range(a + 1, m - 1):
+                det = qx[a] * qy[b] - qy[a] * qx[b]
+                if abs(det) <= 1e-12 * (ca + 1e-300):
+                    continue
+                cb = 0.5 * (qx[b] * qx[b] + qy[b] * qy[b])
+                x = (ca * qy[b] - cb * qy[a]) / det
+                y = (qx[a] * cb - qx[b] * ca) / det
+                r2 = x * x + y * y
+                if r2 <= reach * reach:
+                    continue
+                inside = True
+                for c in range(m - 1):
+                    cc = 0.5 * (qx[c] * qx[c] + qy[c] * qy[c])
+                    if x * qx[c] + y * qy[c] > cc * (1.0 + 1e-9) + 1e-300:
+                        inside = False
+                        break
+                if inside:
+                    reach = math.sqrt(r2)
+        out[p] = reach
+
+
 @numba.njit(cache=True, nogil=True)
 def _propagate_signs(order, parent, normals, signs0, root):
     """Signs along a BFS order of a tree: each node agrees with its (already signed) parent."""
@@ -369,7 +476,8 @@ def _check_inputs(positions, colors, normals, source):
 
 def _merge_duplicates(pts, cols, nrm, source):
     """Merge points at exactly the same position: first normal, mean colour."""
-    _, first, inverse = np.unique(pts, axis=0, return_index=True, return_inverse=True)
+    rows = np.ascontiguousarray(pts).view(np.dtype((np.void, pts.dtype.itemsize * 3))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)  # bytes: fast
     if len(first) == len(pts):
         return pts, cols, nrm
     inverse = inverse.ravel()
@@ -401,3 +509,10 @@ def _progress_bar(total: int, desc: str, enabled: bool):
     show = enabled and total > QUERY_CHUNK and sys.stderr.isatty()
     return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, file=sys.stderr,
                 disable=not show, leave=False)
+
+
+def _stage_bar(total: int, desc: str, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", file=sys.stderr,
+                disable=not (enabled and sys.stderr.isatty()), leave=False)
