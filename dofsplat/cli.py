@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 import sys
 import warnings
@@ -68,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
             args = parser.parse_args(argv)
         except SystemExit as e:  # --help and --version exit through here, status 0
             return e.code if isinstance(e.code, int) else EXIT_OK
+        if getattr(args, "quiet", False):
+            # every progress bar (loaders, hierarchy, reference) is tqdm's: one switch
+            os.environ["TQDM_DISABLE"] = "1"
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             return args.run(args)
