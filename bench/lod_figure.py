@@ -61,7 +61,7 @@ def main(argv=None):
         for c, im in enumerate(images):
             sheet.paste(im, (c * SIZE, y))
         draw.text((6, y + SIZE + 5), text, fill=(0, 0, 0))
-    sheet.save(out)
+    sheet.save(out, optimize=True)
     print(f"wrote {out}")
 
 

@@ -105,21 +105,24 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
         return DESCEND
     if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:
         return DESCEND  # a back-facing mean: let the children decide
-    tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
-    tvx = ny * tuz - nz * tuy
-    tvy = nz * tux - nx * tuz
-    tvz = nx * tuy - ny * tux
-    j11, j21 = jacobian_column(px, py, pz, tux, tuy, tuz, ax, ay)
-    j12, j22 = jacobian_column(px, py, pz, tvx, tvy, tvz, ax, ay)
-    lam_j = max_eigenvalue(j11 * j11 + j12 * j12, j11 * j21 + j12 * j22, j21 * j21 + j22 * j22)
     cov = (np.float64(lod_cov[i, 0]), np.float64(lod_cov[i, 1]), np.float64(lod_cov[i, 2]),
            np.float64(lod_cov[i, 3]), np.float64(lod_cov[i, 4]), np.float64(lod_cov[i, 5]))
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, cov, view, ax, ay)
     lam_q = max_eigenvalue(q11, q12, q22)
 
-    # pixel stop: the level's basis (V^r + V^q) as a disk radius 2 sigma, in pixels
-    if 4.0 * (np.float64(sigma_r2[i]) * lam_j + lam_q) <= thr2:
-        return SELECT
+    # pixel stop: the level's basis (V^r + V^q) as a disk radius 2 sigma, in pixels; the
+    # Jacobian is needed only when the filter alone passes (most nodes fail here)
+    if 4.0 * lam_q <= thr2:
+        tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
+        tvx = ny * tuz - nz * tuy
+        tvy = nz * tux - nx * tuz
+        tvz = nx * tuy - ny * tux
+        j11, j21 = jacobian_column(px, py, pz, tux, tuy, tuz, ax, ay)
+        j12, j22 = jacobian_column(px, py, pz, tvx, tvy, tvz, ax, ay)
+        lam_j = max_eigenvalue(j11 * j11 + j12 * j12, j11 * j21 + j12 * j22,
+                               j21 * j21 + j22 * j22)
+        if 4.0 * (np.float64(sigma_r2[i]) * lam_j + lam_q) <= thr2:
+            return SELECT
     # DOF stop: J V^q J^T inside V^I for the smallest CoC over the node's depth range
     if coc_k > 0.0:
         u_lo = max(u - extent[i], near)
