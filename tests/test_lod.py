@@ -302,3 +302,35 @@ def test_lod_against_full_render_on_the_lion_scan():
         assert lod.stats["splats_rendered"] < 0.5 * full.stats["splats_rendered"]
         # measured values (dB) less 3 dB: the issue's aim is 30 dB or better
         assert psnr(lod.image, full.image) > measured - 3, aperture
+
+
+def test_flat_node_seen_face_on_has_a_finite_z_range():
+    """A flat node facing the camera exactly: its depth variance rounds to ~ -1e-16, which
+    once gave NaN z-ranges (and, in a full A-buffer, a write past its last slot)."""
+    from dofsplat.surfels import tangent_frame
+    n = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)  # not along an axis: rounding happens
+    tu, tv = (t[0].astype(np.float64) for t in tangent_frame(n[None]))
+    g = (np.arange(64) - 31.5) / 64
+    a, b = (x.ravel()[:, None] for x in np.meshgrid(g, g))
+    s = ds.Surfels(positions=a * tu + b * tv, normals=np.tile(n, (64 * 64, 1)),
+                   radius=np.full(64 * 64, 1 / 64), colors=np.full((64 * 64, 3), 0.5))
+    cam = ds.Camera(eye=tuple(2 * n), target=(0, 0, 0), width=64, height=64, fov_y=40)
+    lens = ds.ThinLens(focus_distance=1.0, aperture=0.4)
+    st = ds.RenderSettings()
+    src = select_splats(build_hierarchy(s), s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
+    assert np.any(src.level > 0)
+    splats, _, vis = project(src, shade_surfels(src, cam, st), cam, lens, st)
+    from dofsplat.splat.project import ZHI, ZLO
+    assert vis.sum() > 10 and np.all(np.isfinite(splats[vis][:, [ZLO, ZHI]]))
+
+
+def test_a_full_abuffer_never_writes_past_its_last_slot():
+    from dofsplat.raster.abuffer import MAX_SURFACES, insert_fragment
+    acc = np.zeros((2, MAX_SURFACES, 8), np.float64)
+    cnt = np.zeros(2, np.int64)
+    for i in range(MAX_SURFACES):  # fill pixel 0 with separate surfaces
+        insert_fragment(acc, cnt, 0, 1.0, 0.5, 0.5, 0.5, 1.0, float(i), float(i), i + 0.5)
+    before = acc.copy()
+    assert insert_fragment(acc, cnt, 0, 1.0, 1, 1, 1, 1, np.nan, np.nan, np.nan) == 1
+    assert cnt[0] == MAX_SURFACES and cnt[1] == 0
+    np.testing.assert_array_equal(acc[1], before[1])  # the next pixel is untouched

@@ -102,8 +102,10 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
             break
     overflow = 0
     if hit < 0 and n == acc.shape[1]:
-        # A-buffer full: merge into the surface whose z-range is nearest
+        # A-buffer full: merge into the surface whose z-range is nearest (slot 0 if no gap
+        # compares, e.g. a NaN range: never write past the last slot)
         best = 1e300
+        hit = 0
         for i in range(n):
             gap = max(acc[p, i, S_ZLO] - zhi, zlo - acc[p, i, S_ZHI])
             if gap < best:

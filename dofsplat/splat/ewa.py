@@ -265,7 +265,8 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     # is the leaf basis's plus the filter's (V^l = V^r + V^q, Section 5.3); z_margin adds
     # a thickness proportional to the basis radius
     reach = math.sqrt(2.0 * cutoff)
-    var_z = (su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth
+    # q_depth of a flat node seen face-on rounds to about -1e-16: clamp, or the range is NaN
+    var_z = max((su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth, 0.0)
     sigma_l = math.sqrt(max(su, sv) ** 2 + 0.5 * (lod_cov[0] + lod_cov[3] + lod_cov[5]))
     half = reach * math.sqrt(var_z) + z_margin * 2.0 * sigma_l
     return True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r
