@@ -6,7 +6,9 @@ An implementation of Krivanek & Zara, "Rendering Depth-of-Field with Surface Spl
 
 from .camera import Camera, EyeLens, ThinLens, photographic
 from .errors import DofsplatError
+from .metrics import compare
 from .render import RenderResult, RenderSettings, focus_distance_at, render
+from .reference import render_reference
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels
 
@@ -15,5 +17,5 @@ __version__ = "0.1.0"
 __all__ = [
     "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",
     "RenderSettings", "focus_distance_at", "render", "HEADLIGHT", "Light", "Material",
-    "Surfels", "__version__",
+    "Surfels", "__version__", "compare", "render_reference",
 ]

@@ -89,19 +89,29 @@ def lens_camera(camera: Camera, offset, focus_distance: float) -> Camera:
 
 
 def lens_cameras(camera: Camera, lens: ThinLens | EyeLens | None,
-                 samples: int = DEFAULT_SAMPLES) -> list[Camera]:
-    """The pinhole cameras of the reference: one per lens sample (one camera for a pinhole)."""
+                 samples: int = DEFAULT_SAMPLES, offsets=None) -> list[Camera]:
+    """The pinhole cameras of the reference: one per lens sample (one camera for a pinhole).
+
+    offsets: (n, 2) lens-plane offsets (world units) to use instead of the Vogel spiral over
+    the lens disc, e.g. another aperture shape; ``samples`` is then ignored.
+    """
     samples = _check_samples(samples)
-    diameter = effective_diameter(camera, lens)
-    if diameter == 0.0:
+    if lens is None or effective_diameter(camera, lens) == 0.0:
         return [camera]
-    return [lens_camera(camera, o, float(lens.focus_distance))
-            for o in lens_samples(samples, diameter)]
+    if offsets is None:
+        offsets = lens_samples(samples, effective_diameter(camera, lens))
+    offsets = np.asarray(offsets, np.float64)
+    if offsets.ndim != 2 or offsets.shape[1] != 2 or len(offsets) == 0 \
+            or not np.all(np.isfinite(offsets)):
+        raise DofsplatError(f"lens offsets must be a non-empty (n, 2) array of finite "
+                            f"numbers, got shape {offsets.shape}")
+    return [lens_camera(camera, o, float(lens.focus_distance)) for o in offsets]
 
 
 def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None,
                      settings: RenderSettings | None = None, samples: int = DEFAULT_SAMPLES,
-                     progress: bool = True, *, shade_per_sample: bool = False) -> RenderResult:
+                     progress: bool = True, *, shade_per_sample: bool = False,
+                     offsets=None) -> RenderResult:
     """The multisample depth-of-field reference: ``samples`` pinhole renders averaged.
 
     surfels, camera, lens, settings: as for :func:`dofsplat.render.render` (``settings.dof``
@@ -109,6 +119,10 @@ def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens 
     samples: number of lens samples N (the paper uses 200); a pinhole lens (None or A = 0)
     needs one render whatever N.
     progress: show a progress bar on stderr (only when stderr is a terminal).
+    offsets: (n, 2) lens-plane points (world units, along the camera's right and up axes)
+            to average over instead of the Vogel spiral over the lens disc: another
+            aperture shape or weighting (``bench/paper.py`` uses a Gaussian lens to separate
+            the shape of our blur kernel from the rest of the error); samples is then ignored.
 
     Returns a ``RenderResult``:
     image:  (H, W, 4) float32, the mean of the samples' linear RGBA images
@@ -123,7 +137,7 @@ def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens 
     settings = settings or RenderSettings()
     warm_up()  # timings exclude JIT compilation, as render()'s do
     t_start = time.perf_counter()
-    cameras = lens_cameras(camera, lens, samples)
+    cameras = lens_cameras(camera, lens, samples, offsets)
     pinhole = _pinhole_settings(settings, shaded=not shade_per_sample)
 
     t = time.perf_counter()

@@ -258,6 +258,8 @@ def test_cli_reference_of_the_demo_scene(tmp_path, capsys):
     (["reference", "model.ply", "--demo"], "not both"),
     (["reference", "--demo", "--samples", "0"], "at least 1"),
     (["reference", "--demo", "--method", "postfilter"], "unrecognized arguments"),
+    (["reference", "--demo", "--no-lod"], "unrecognized arguments"),
+    (["reference", "--demo", "--show-lod"], "unrecognized arguments"),
 ])
 def test_cli_reference_mistakes(tmp_path, capsys, argv, message):
     out = tmp_path / "r.png"
@@ -265,3 +267,29 @@ def test_cli_reference_mistakes(tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert err.startswith("dofsplat: error: ") and message in err and err.count("\n") == 1
     assert not out.exists()
+
+
+def test_cli_reference_help_has_no_lod_options(capsys):
+    """Every lens sample is a full-resolution pinhole render: LOD options would do nothing."""
+    assert main(["reference", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "--samples" in text and "--aperture" in text
+    assert "level of detail" not in text and "--lod" not in text and "--show-lod" not in text
+
+
+def test_the_api_exports_the_reference_and_compare():
+    assert ds.render_reference is render_reference and ds.compare is compare
+
+
+def test_explicit_lens_offsets():
+    """offsets= replaces the Vogel spiral: the spiral's own offsets give the same image, and
+    anything but a non-empty (n, 2) array of finite numbers is a user error."""
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.1)
+    by_count = render_reference(SCENE, CAM, lens, UNLIT, samples=6, progress=False)
+    by_offsets = render_reference(SCENE, CAM, lens, UNLIT, progress=False,
+                                  offsets=lens_samples(6, 0.1))
+    np.testing.assert_array_equal(by_offsets.image, by_count.image)
+    assert by_offsets.stats["samples"] == 6
+    for bad in (np.zeros((0, 2)), np.zeros((3, 3)), [[0.0, np.nan]]):
+        with pytest.raises(ds.DofsplatError, match="lens offsets"):
+            render_reference(SCENE, CAM, lens, UNLIT, progress=False, offsets=bad)
