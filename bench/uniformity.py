@@ -22,13 +22,10 @@ import argparse
 import dataclasses
 import gzip
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-import numba
 import numpy as np
 
 import dofsplat as ds
@@ -38,19 +35,12 @@ from dofsplat.normalise import normalise, uniformity
 from dofsplat.pointcloud import points_to_surfels
 from dofsplat.render import RenderSettings, render
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_plane import machine  # noqa: E402
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MODELS = ("dragon", "lion", "plane", "plane-jittered")
 CLOSE_UP_PX_PER_RADIUS = 2.0
-
-
-def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, numba {numba.__version__} with {numba.get_num_threads()} threads"
 
 
 def read_ply_points(path: Path):

@@ -12,7 +12,7 @@ from dofsplat.lod import Hierarchy, build_hierarchy, select_splats
 from dofsplat.render import project, shade_surfels
 from dofsplat.slow import project_reference
 
-from conftest import SHARED_DATA, front_camera, grid_surfels
+from conftest import SHARED_DATA, grid_surfels
 
 LN4 = math.log(4.0)
 

@@ -245,20 +245,27 @@ def _progress(enabled: bool, n: int):
 # -- kernels -----------------------------------------------------------------------------
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bounds(positions, order, s, e):
+    """Bounding box (lo x, y, z, hi x, y, z) of the surfels order[s:e]."""
+    lo0 = lo1 = lo2 = np.inf
+    hi0 = hi1 = hi2 = -np.inf
+    for j in range(s, e):
+        k = order[j]
+        x, y, z = positions[k, 0], positions[k, 1], positions[k, 2]
+        lo0, hi0 = min(lo0, x), max(hi0, x)
+        lo1, hi1 = min(lo1, y), max(hi1, y)
+        lo2, hi2 = min(lo2, z), max(hi2, z)
+    return lo0, lo1, lo2, hi0, hi1, hi2
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _split_nodes(positions, order, starts, counts):
     """For each node, move the lower half of its surfels (along its bbox's longest axis) first."""
     for t in numba.prange(starts.shape[0]):
         s = starts[t]
         e = s + counts[t]
-        lo0 = lo1 = lo2 = np.inf
-        hi0 = hi1 = hi2 = -np.inf
-        for j in range(s, e):
-            k = order[j]
-            x, y, z = positions[k, 0], positions[k, 1], positions[k, 2]
-            lo0, hi0 = min(lo0, x), max(hi0, x)
-            lo1, hi1 = min(lo1, y), max(hi1, y)
-            lo2, hi2 = min(lo2, z), max(hi2, z)
+        lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(positions, order, s, e)
         axis = 0
         ext = hi0 - lo0
         if hi1 - lo1 > ext:
@@ -307,14 +314,7 @@ def _node_spheres(order, start, count, positions, ru, rv, center, bound):
     for i in numba.prange(count.shape[0]):
         s = start[i]
         e = s + count[i]
-        lo0 = lo1 = lo2 = np.inf
-        hi0 = hi1 = hi2 = -np.inf
-        for j in range(s, e):
-            k = order[j]
-            x, y, z = positions[k, 0], positions[k, 1], positions[k, 2]
-            lo0, hi0 = min(lo0, x), max(hi0, x)
-            lo1, hi1 = min(lo1, y), max(hi1, y)
-            lo2, hi2 = min(lo2, z), max(hi2, z)
+        lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(positions, order, s, e)
         cx = 0.5 * (np.float64(lo0) + hi0)
         cy = 0.5 * (np.float64(lo1) + hi1)
         cz = 0.5 * (np.float64(lo2) + hi2)
