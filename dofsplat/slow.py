@@ -137,8 +137,8 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         else:
             amp = area_px / (2 * math.pi * math.sqrt(np.linalg.det(W)) * (1 - math.exp(-c)))
         reach = math.sqrt(2 * c)
-        # depth extent of the level's basis V^r + V^q (Section 5.3)
-        var_z = max((su * tu[k, 2]) ** 2 + (sv * tv[k, 2]) ** 2 + rot[2] @ Sq @ rot[2], 0.0)
+        # depth extent: the leaf basis, plus the node's surfels' spread V^q / 3
+        var_z = max((su * tu[k, 2]) ** 2 + (sv * tv[k, 2]) ** 2 + rot[2] @ Sq @ rot[2] / 3, 0.0)
         sigma_l = math.sqrt(max(su, sv) ** 2 + np.trace(Sq) / 2)
         half = reach * math.sqrt(var_z) + settings.z_thickness * 2 * sigma_l
         splats[k, [MX, MY]] = m

@@ -295,7 +295,7 @@ def test_lod_against_full_render_on_the_lion_scan():
                     up=(0, 0, 1), width=192, height=192, fov_y=40)
     focus = ds.focus_distance_at(s, cam, 80, 69, ds.RenderSettings(lod=False))  # the face
     tree = build_hierarchy(s)
-    for aperture, measured in ((0.5, 44.3), (2.0, 41.0)):
+    for aperture, measured in ((0.5, 44.4), (2.0, 42.5)):
         lens = ds.ThinLens(focus_distance=focus, aperture=aperture)
         lod = ds.render(s, cam, lens, ds.RenderSettings(), tree)
         full = ds.render(s, cam, lens, ds.RenderSettings(lod=False))

@@ -260,13 +260,14 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
     w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, dof_variance(coc_r))
 
-    # z-range of the basis function r_k^l in camera space, not enlarged by the blur
-    # (Section 6.4): the truncated basis reaches sqrt(2c) sigma; the level's depth variance
-    # is the leaf basis's plus the filter's (V^l = V^r + V^q, Section 5.3); z_margin adds
-    # a thickness proportional to the basis radius
+    # z-range in camera space, not enlarged by the blur (Section 6.4): the truncated leaf
+    # basis reaches sqrt(2c) sigma in depth; a node adds the depth spread of its surfels
+    # (V^q / 3, their positional covariance: the z-ranges of its surfels, and no more, or
+    # a curved node would merge with surfaces behind it); z_margin adds a thickness
+    # proportional to the basis radius
     reach = math.sqrt(2.0 * cutoff)
     # q_depth of a flat node seen face-on rounds to about -1e-16: clamp, or the range is NaN
-    var_z = max((su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth, 0.0)
+    var_z = max((su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth / 3.0, 0.0)
     sigma_l = math.sqrt(max(su, sv) ** 2 + 0.5 * (lod_cov[0] + lod_cov[3] + lod_cov[5]))
     half = reach * math.sqrt(var_z) + z_margin * 2.0 * sigma_l
     return True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r
