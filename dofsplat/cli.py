@@ -719,7 +719,7 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
         "so the time per frame hardly depends on the aperture (the paper's Section 6.2). "
         "The picture stays the same (PSNR against --no-lod: about 55 dB on the plane of the "
-        "paper's Table 1, 41-44 dB on a scanned statue).")
+        "paper's Table 1, 42-44 dB on a scanned statue).")
     lod.add_argument("--lod", action=argparse.BooleanOptionalAction, default=True,
                      help="select splats from the hierarchy (default: on); --no-lod splats "
                           "every surfel")
