@@ -246,6 +246,19 @@ def test_points_fall_with_the_aperture_and_quality_holds(plane_view):
     assert lod.stats["fragments"] < full.stats["fragments"] / 10
 
 
+def _cut(tree, s, cam, lens):
+    """The node indices of the cut, straight from the traversal's flags."""
+    from dofsplat.lod.select import select_nodes
+    ax, bx, ay, by = cam.screen_coefficients()
+    flags = np.empty(len(tree), np.uint8)
+    view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
+    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal,
+                 tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by,
+                 cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
+                 2.5, 1.0, 1.0, True, flags)
+    return np.flatnonzero(flags)
+
+
 def test_node_splats_equal_the_numpy_twin(bumpy):
     """Projection of an LOD cut (anisotropic V^q through circumellipse) against slow.py."""
     s, tree = bumpy
@@ -255,6 +268,8 @@ def test_node_splats_equal_the_numpy_twin(bumpy):
     src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
     inner = src.level > 0
     assert inner.sum() > 20
+    # the gather derives each node's level from its count: the tree's stored height
+    np.testing.assert_array_equal(src.level, tree.level[_cut(tree, s, cam, lens)])
     as_surfels = ds.Surfels(positions=src.positions, normals=src.normals, radius=src.ru,
                             colors=src.colors, opacity=src.opacity,
                             weight=src.area / (src.ru * src.rv))

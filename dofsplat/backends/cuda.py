@@ -8,8 +8,8 @@ per node or per fragment is a ``shared`` (numba.njit) function whose ``.py_func`
 compiled here once more, as a CUDA device function, by ``device_twin``:
 
     project_splat (splat/project.py)  -> ewa.project_surfel, kernel_bbox, kernel_pixel_sum
-    shade_splat (splat/shade.py), visit_node and node_splat (lod/select.py)
-    insert_fragment, resolve_pixel (raster/abuffer.py); ewa.row_pixel_range, ewa.exponent
+    shade_splat (splat/shade.py), visit_node and gather_splat (lod/select.py)
+    insert_fragment, resolve_to_image (raster/abuffer.py); ewa.row_pixel_range, ewa.exponent
 
 ``device_twin`` gives the copy of each function a globals dict in which the ``shared``
 functions it calls are their own device twins, so nested calls stay on the GPU. What is
@@ -18,15 +18,15 @@ written here is only the parallel structure around those calls:
 * select: the hierarchy is cut breadth first, one kernel per level of the tree, a thread
   per node of the level (``visit_node``), the next level's nodes appended with an atomic
   counter that stays on the GPU (no round trip per level); the cut, a flag per node, is
-  compacted in node order by a prefix sum and gathered (``node_splat``, the attributes
-  copied as ``gather_splats`` copies them);
+  compacted in node order by a prefix sum and gathered (``gather_splat``, the CPU's own
+  per-row function);
 * shade, project: one thread per splat;
 * bin: tile-splat pairs counted per tile with atomics, offsets by a prefix sum, filled with
   atomics, then each tile's list sorted by splat index (a bitonic sort, one block per tile)
   so that fragments reach every pixel in the CPU's order;
 * rasterise: one block per 16x16 tile, one thread per pixel, the tile's splats loaded into
   shared memory in batches and walked in index order; each thread keeps its pixel's
-  A-buffer (``insert_fragment``) and resolves it (``resolve_pixel``).
+  A-buffer (``insert_fragment``) and resolves it (``resolve_to_image``).
 
 So the image equals the CPU's up to floating-point rounding: the kernel value is
 ``exp(-exponent)`` at each pixel instead of the CPU's forward differences along a row.
@@ -47,8 +47,8 @@ import numba
 import numpy as np
 from numba import cuda
 
-from ..lod.select import DESCEND, SELECT, node_splat, visit_node
-from ..raster.abuffer import MAX_SURFACES, N_ACC, TILE, insert_fragment, resolve_pixel
+from ..lod.select import DESCEND, SELECT, gather_splat, visit_node
+from ..raster.abuffer import MAX_SURFACES, N_ACC, TILE, insert_fragment, resolve_to_image
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, N_FIELDS,
                              RED, X0, X1, ZHI, ZLO, project_splat)
@@ -88,9 +88,9 @@ def device_twin(fn):
 _project_splat = device_twin(project_splat)
 _shade_splat = device_twin(shade_splat)
 _visit_node = device_twin(visit_node)
-_node_splat = device_twin(node_splat)
+_gather_splat = device_twin(gather_splat)
 _insert_fragment = device_twin(insert_fragment)
-_resolve_pixel = device_twin(resolve_pixel)
+_resolve_to_image = device_twin(resolve_to_image)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
 
@@ -188,42 +188,15 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, count, center, boun
 
 @cuda.jit
 def _gather(nodes, order, start, count, position, normal, color, opacity, area, sigma_r2,
-            lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
-            elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
-            out_rv, out_area, out_cov, out_level):
-    """Row t: node nodes[t] as a splat (lod/select.py's gather_splats, one thread per row)."""
+            lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight, out_pos,
+            out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov, out_level):
+    """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row)."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
-        i = nodes[t]
-        k, ru, rv, a = _node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
-                                   elliptical, has_weight)
-        if k >= 0:  # a leaf: its surfel, unchanged
-            for d in range(3):
-                out_pos[t, d] = s_pos[k, d]
-                out_nrm[t, d] = s_nrm[k, d]
-                out_col[t, d] = s_col[k, d]
-            out_alpha[t] = s_alpha[k]
-            if elliptical:
-                for d in range(3):
-                    out_tan[t, d] = s_tan[k, d]
-            for d in range(6):
-                out_cov[t, d] = 0.0
-            out_level[t] = 0
-        else:  # an inner node: its prefiltered attributes and LOD filter
-            for d in range(3):
-                out_pos[t, d] = position[i, d]
-                out_nrm[t, d] = normal[i, d]
-                out_col[t, d] = color[i, d]
-            out_alpha[t] = opacity[i]
-            if elliptical:
-                for d in range(3):
-                    out_tan[t, d] = 0.0  # derive the tangent from the normal
-            for d in range(6):
-                out_cov[t, d] = lod_cov[i, d]
-            out_level[t] = level[i]
-        out_ru[t] = ru
-        out_rv[t] = rv
-        out_area[t] = a
+        _gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
+                      sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                      s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                      out_area, out_cov, out_level)
 
 
 @cuda.jit
@@ -387,13 +360,8 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         res = cuda.local.array(7, numba.float64)
         order = cuda.local.array(MAX_SURFACES, numba.int64)
         scratch = cuda.local.array(MAX_SURFACES, numba.float64)
-        _resolve_pixel(acc, cnt, 0, bg_r, bg_g, bg_b, res, order, scratch)
-        image[i, j, 0] = res[0]
-        image[i, j, 1] = res[1]
-        image[i, j, 2] = res[2]
-        image[i, j, 3] = res[3]
-        depth[i, j] = res[4]
-        weight[i, j] = res[5]
+        _resolve_to_image(acc, cnt, 0, bg_r, bg_g, bg_b, res, order, scratch, image, depth,
+                          weight, i, j)
     cuda.atomic.add(counters, 0, frags)
     cuda.atomic.add(counters, 1, overflows)
     cuda.syncthreads()
@@ -469,7 +437,7 @@ def _array_key(surfels) -> tuple:
 
 
 TREE_ARRAYS = ("order", "start", "count", "center", "bound", "extent", "position", "normal",
-               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "level")
+               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov")
 
 
 def device_scene(surfels, tree=None) -> DeviceScene:
@@ -551,10 +519,9 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> Sp
         src = scene.source
         _gather[_blocks(n), THREADS](
             nodes, d["order"], d["start"], d["count"], d["position"], d["normal"], d["color"],
-            d["opacity"], d["area"], d["sigma_r2"], d["lod_cov"], d["level"], src.positions,
+            d["opacity"], d["area"], d["sigma_r2"], d["lod_cov"], src.positions,
             src.normals, src.colors, src.opacity, scene.raw["tangent"], src.ru,
-            scene.raw["radius_v"], scene.raw["weight"], ell, surfels.weight is not None,
-            out.positions, out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv,
+            scene.raw["radius_v"], scene.raw["weight"], out.positions, out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv,
             out.area, out.lod_cov, out.level)
     if settings.show_lod:
         colors = _WS.get("src.level_colors", (n, 3), np.float32)

@@ -181,12 +181,7 @@ def _check_properties(path: Path, columns: dict[str, np.ndarray]) -> None:
             f"{path}: vertex element lacks required properties {' '.join(missing)}; a surfel "
             f"PLY needs {' '.join(REQUIRED)}, a point cloud x y z with all of nx ny nz or "
             "none: this is not a surfel file nor a point cloud")
-    for group in (COLOR, ELLIPSE):
-        present = [p for p in group if p in columns]
-        if present and len(present) < len(group):
-            missing = [p for p in group if p not in columns]
-            raise DofsplatError(f"{path}: vertex element has {' '.join(present)} but lacks "
-                                f"{' '.join(missing)}; give all of {' '.join(group)} or none")
+    _check_groups(path, columns, (COLOR, ELLIPSE))
 
 
 def _stack(columns, names) -> np.ndarray:

@@ -191,54 +191,77 @@ def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2,
     return n
 
 
+# inlined at numba's level, like project_splat; the CUDA backend compiles it as its device twin
+@numba.njit(cache=True, nogil=True, inline="always")
+def gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
+                 sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
+                 out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area,
+                 out_cov, out_level):
+    """Row t of the splat arrays: node nodes[t] (``gather_splats``; one GPU thread per row).
+
+    s_tan, s_rv: (0, 3) and (0,) for circular surfels; s_weight: (0,) without weights.
+    """
+    elliptical = s_tan.shape[0] > 0
+    has_weight = s_weight.shape[0] > 0
+    i = nodes[t]
+    k, ru, rv, a = node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
+                              elliptical, has_weight)
+    if k >= 0:  # a leaf: its surfel, unchanged
+        for d in range(3):
+            out_pos[t, d] = s_pos[k, d]
+            out_nrm[t, d] = s_nrm[k, d]
+            out_col[t, d] = s_col[k, d]
+        out_alpha[t] = s_alpha[k]
+        if elliptical:
+            for d in range(3):
+                out_tan[t, d] = s_tan[k, d]
+        for d in range(6):
+            out_cov[t, d] = 0.0
+        out_level[t] = 0
+    else:  # an inner node: its prefiltered attributes and LOD filter
+        for d in range(3):
+            out_pos[t, d] = position[i, d]
+            out_nrm[t, d] = normal[i, d]
+            out_col[t, d] = color[i, d]
+        out_alpha[t] = opacity[i]
+        if elliptical:
+            for d in range(3):
+                out_tan[t, d] = 0.0  # derive the tangent from the normal
+        for d in range(6):
+            out_cov[t, d] = lod_cov[i, d]
+        # the median split halves the count: the node's height is ceil(log2 count)
+        h = 0
+        m = count[i]
+        while m > 1:
+            m = (m + 1) // 2
+            h += 1
+        out_level[t] = h
+    out_ru[t] = ru
+    out_rv[t] = rv
+    out_area[t] = a
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def gather_splats(nodes, order, start, count, position, normal, color, opacity, area,
-                  sigma_r2, lod_cov, level, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
-                  s_weight, elliptical, has_weight, out_pos, out_nrm, out_col, out_alpha,
-                  out_tan, out_ru, out_rv, out_area, out_cov, out_level):
+                  sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                  s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                  out_area, out_cov, out_level):
     """Fill the splat arrays (one row per selected node) from the tree and the surfels.
 
     A leaf is its surfel, unchanged; an inner node is a circular splat at its mean position
     with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter.
     """
     for t in numba.prange(nodes.shape[0]):
-        i = nodes[t]
-        k, ru, rv, a = node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
-                                  elliptical, has_weight)
-        if k >= 0:  # a leaf: its surfel, unchanged
-            for d in range(3):
-                out_pos[t, d] = s_pos[k, d]
-                out_nrm[t, d] = s_nrm[k, d]
-                out_col[t, d] = s_col[k, d]
-            out_alpha[t] = s_alpha[k]
-            if elliptical:
-                for d in range(3):
-                    out_tan[t, d] = s_tan[k, d]
-            for d in range(6):
-                out_cov[t, d] = 0.0
-            out_level[t] = 0
-        else:  # an inner node: its prefiltered attributes and LOD filter
-            for d in range(3):
-                out_pos[t, d] = position[i, d]
-                out_nrm[t, d] = normal[i, d]
-                out_col[t, d] = color[i, d]
-            out_alpha[t] = opacity[i]
-            if elliptical:
-                for d in range(3):
-                    out_tan[t, d] = 0.0  # derive the tangent from the normal
-            for d in range(6):
-                out_cov[t, d] = lod_cov[i, d]
-            out_level[t] = level[i]
-        out_ru[t] = ru
-        out_rv[t] = rv
-        out_area[t] = a
+        gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
+                     sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                     s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                     out_area, out_cov, out_level)
 
 
-# inlined at numba's level: a per-node call passing eight arrays would cost more than the copy
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
                has_weight):
-    """Node i as a splat: (k, r_u, r_v, area), for ``gather_splats`` and the CUDA backend.
+    """Node i as a splat: (k, r_u, r_v, area), for ``gather_splat``.
 
     A leaf is its surfel k, unchanged (its radii, and the area r_u r_v weight it stands
     for); an inner node (k = -1) is circular, with the leaf basis radius 2 sqrt(V^r), and

@@ -145,6 +145,19 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     return overflow
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch, image, depth, weight,
+                     i, j):
+    """Resolve pixel p's surfaces (``resolve_pixel``) into image pixel (i, j) and its buffers."""
+    resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch)
+    image[i, j, 0] = res[0]
+    image[i, j, 1] = res[1]
+    image[i, j, 2] = res[2]
+    image[i, j, 3] = res[3]
+    depth[i, j] = res[4]
+    weight[i, j] = res[5]
+
+
 @numba.njit(cache=True, nogil=True)
 def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, depth):
     """Composite pixel p's surfaces front to back over the background.
@@ -241,12 +254,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)
-                resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res, order, depth_scratch)
-                image[i, j, 0] = res[0]
-                image[i, j, 1] = res[1]
-                image[i, j, 2] = res[2]
-                image[i, j, 3] = res[3]
-                depth[i, j] = res[4]
-                weight[i, j] = res[5]
+                resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, depth_scratch,
+                                 image, depth, weight, i, j)
         tile_stats[t, 0] = frags
         tile_stats[t, 1] = overflows
