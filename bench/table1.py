@@ -37,6 +37,7 @@ from dofsplat.lod import build_hierarchy  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 LION = SHARED / "lion_takanawa" / "lion_takanawa_xyzrgb.ply"
+DRAGON = SHARED / "stanford_dragon" / "dragon_vrip.ply.gz"
 PAPER_LION_POINTS = 81_458
 
 # lens diameters, world units: (small, large). The plane is 4 units wide and 3.4 from the
@@ -176,16 +177,45 @@ def plot(path, sweeps):
     fig.savefig(path, dpi=110)
 
 
+def hierarchy_costs(path: Path):
+    """Build, save and load (with its fingerprint check) the hierarchy of a large model."""
+    import tempfile
+
+    from dofsplat.io import load
+    from dofsplat.lod import Hierarchy
+
+    surfels = load(path)
+    build_hierarchy(surfels.subset(slice(0, 100)))  # compile outside the timing
+    t = time.perf_counter()
+    tree = build_hierarchy(surfels)
+    build_s = time.perf_counter() - t
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        saved = tree.save(Path(tmp) / "tree.lod.npz")
+        save_s = time.perf_counter() - t
+        t = time.perf_counter()
+        assert Hierarchy.load(saved, surfels) is not None
+        load_s = time.perf_counter() - t
+    print(f"\n### hierarchy of {path.name}: {len(surfels):,} surfels, {len(tree):,} nodes, "
+          f"{tree.nbytes() / 1e6:.0f} MB; build {build_s:.2f} s, save {save_s:.2f} s, "
+          f"load with the fingerprint check {load_s:.2f} s")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--plot", metavar="FILE.png", help="also sweep the aperture and plot")
     ap.add_argument("--json", metavar="FILE.json", help="write every number measured")
-    ap.add_argument("--scenes", default="plane,lion,lion81k")
+    ap.add_argument("--scenes", default="plane,lion,lion81k,dragon-tree",
+                    help="comma-separated: plane, lion, lion81k; dragon-tree times the "
+                         "hierarchy of the full dragon (build, save, load)")
     args = ap.parse_args(argv)
     print(f"machine: {machine()}")
     scenes = []
-    for name in args.scenes.split(","):
+    names = args.scenes.split(",")
+    for name in names:
+        if name == "dragon-tree":
+            continue
         if name == "plane":
             scenes.append((name, *plane_scene(512, 512), 1.0))
         elif name in ("lion", "lion81k"):
@@ -201,6 +231,11 @@ def main(argv=None):
         tree = table(name, surfels, camera, lens, args.repeat, records)
         if args.plot:
             sweeps += sweep(name, surfels, camera, lens, tree, max(1, args.repeat // 2), scale)
+    if "dragon-tree" in names:
+        if DRAGON.exists():
+            hierarchy_costs(DRAGON)
+        else:
+            print(f"\n(skipping dragon-tree: {DRAGON} not found)")
     if args.plot:
         plot(args.plot, sweeps)
         print(f"\nplot: {args.plot}")

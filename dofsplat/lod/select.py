@@ -11,7 +11,8 @@ A node is selected when
   where J V^{q,l} J^T is the node's low-pass filter projected at its mean position
   (``ewa.screen_lod_variance``) and C_min the smallest circle of confusion over the
   node's depth range. kappa = 1 is the paper's rule; a smaller kappa stops one level lower
-  (kappa = 1/2: about 1.5 x the fragments, 1.5-8 dB closer to the reference).
+  (kappa = 1/2: 1.35-1.7 x the fragments, 0.1-2 dB closer to the reference in
+  bench/paper.py's Figure 6).
   Then circumellipse(J V^{q,l} J^T, V^I) = V^I: the node's resampling kernel is exactly the
   no-LOD DOF kernel of eq. 11, rasterised from one splat instead of many (PAPER_NOTES §4);
 * or it is smaller than the pixel threshold (QSplat's stop): its level basis V^l = V^r + V^q,
