@@ -216,14 +216,6 @@ def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[fl
     return lens.coc_coefficients(camera)
 
 
-def surfel_arrays(surfels: Surfels):
-    """(tangents, r_u, r_v, area) as the kernels take them; tangents is (0, 3) for disks."""
-    from .splat.source import from_surfels
-
-    src = from_surfels(surfels)
-    return src.tangents, src.ru, src.rv, src.area
-
-
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
             lod_cov: np.ndarray | None = None):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.

@@ -18,7 +18,8 @@ import math
 import numpy as np
 
 from .camera import Camera
-from .render import RenderSettings, coc_coefficients, surfel_arrays
+from .render import RenderSettings, coc_coefficients
+from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
 
 LN4 = math.log(4.0)
@@ -76,7 +77,8 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
 
     n = len(surfels)
     c = float(settings.cutoff)
-    tangents, ru, rv, area = surfel_arrays(surfels)
+    src = from_surfels(surfels)
+    ru, rv, area = src.ru, src.rv, src.area
     view = camera.camera_from_world()
     rot = view[:3, :3]
     p = surfels.positions.astype(np.float64) @ rot.T + view[:3, 3]

@@ -101,10 +101,6 @@ class Hierarchy:
         """Number of levels (the root's height + 1)."""
         return int(self.level[0]) + 1
 
-    def leaf_surfel(self, node: int) -> int:
-        """The surfel index of a leaf node."""
-        return int(self.order[self.start[node]])
-
     def children(self, node: int) -> tuple[int, int] | None:
         """(left, right) node indices, or None for a leaf."""
         m = int(self.count[node])
