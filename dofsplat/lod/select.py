@@ -175,7 +175,7 @@ def _walk(root, root_depth, max_depth, count, center, bound, extent, position, n
 def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
                  kappa, cull_backfaces, flags):
-    """Set flags[i] = 1 for every node of the cut, 0 elsewhere. Returns the number of nodes."""
+    """Set flags[i] = 1 for every node of the cut, 0 elsewhere."""
     flags[:] = 0
     pending = np.empty(1 << (SPLIT_DEPTH + 1), np.int64)
     n_pending = _walk(0, 0, SPLIT_DEPTH - 1, count, center, bound, extent, position, normal, cone,
@@ -186,10 +186,6 @@ def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2,
         _walk(pending[t], 0, STACK, count, center, bound, extent, position, normal, cone, sigma_r2,
               lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
               kappa, cull_backfaces, flags, dummy, 0)
-    n = 0
-    for i in range(flags.shape[0]):
-        n += flags[i]
-    return n
 
 
 # inlined at numba's level, like project_splat; the CUDA backend compiles it as its device twin
