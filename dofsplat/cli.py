@@ -587,12 +587,16 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                             "(for an OBJ that names no material file)")
     group.add_argument("--k", metavar="K", type=_positive_int,
                        help="point clouds (PLY without faces, LAS/LAZ, PCD): neighbours for "
-                            "the normals and radii (default: 16)")
+                            "the normals, smoothing and radii (default: 24)")
+    group.add_argument("--no-smooth", dest="smooth", action="store_false", default=None,
+                       help="point clouds: keep the positions as measured (default: each "
+                            "point is moved along its normal onto the plane of its K "
+                            "neighbours, which removes scanner noise and quantisation)")
 
 
 def _loader_options(args) -> dict:
     """The input options the user gave, as keywords for dofsplat.io.load."""
-    names = ("points", "texture", "k")
+    names = ("points", "texture", "k", "smooth")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 

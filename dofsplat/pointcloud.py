@@ -8,13 +8,17 @@ neighbours (scipy's k-d tree), in four steps:
    first: they carry no information and make the distances degenerate);
 2. **normals** by local PCA: the eigenvector of the smallest eigenvalue of the covariance
    of the point and its k neighbours (``pca_normals``, a numba kernel, and its numpy twin
-   ``pca_normals_slow``);
+   ``pca_normals_slow``); then, unless ``smooth=False``, each point is moved along that
+   normal onto the plane (``project_to_planes``): scanner noise and quantisation (the
+   lion's coordinates are whole centimetres) put points off the surface, and splats off
+   the surface are uneven in depth and coverage;
 3. **orientation**: towards the sensor when its position is known (``viewpoint``), else a
    consistent orientation propagated over the neighbour graph (Hoppe et al. 1992, "Surface
    reconstruction from unorganized points"): a minimum spanning tree over the symmetric
-   kNN graph with edge cost 1 - |n_i . n_j| carries the sign from a root whose
-   orientation is known, the point farthest from its component's centroid, whose
-   outward normal points away from the centroid;
+   kNN graph with edge cost 1 - |n_i . n_j| carries the sign from one point through each
+   connected component, and the component is then turned outward by a vote of its points
+   seen from 32 directions around it (``outward_votes``: a visible surface faces its
+   viewer);
 4. **radii and areas** (``surfel_radii``). Each surfel stands for the area 1 / rho, rho
    the local number of points per unit area from a smooth kernel density over the k
    neighbours: exp(-d^2 / 2s^2) - exp(-R^2 / 2s^2) on the disk of radius R = the distance
@@ -47,7 +51,9 @@ import numpy as np
 from .errors import DofsplatError
 from .surfels import Surfels
 
-DEFAULT_K = 16  # neighbours for PCA and density: enough for a stable plane fit on scans
+DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
+# quantisation needs 24 for a steady plane fit (16: 0.92 / 0.95 of its pixels sum to 1 +- 0.1,
+# 24: 0.96 / 0.97; the dragon is the same with either; bench/RESULTS.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
@@ -56,10 +62,14 @@ OUTLIER_RADIUS_FACTOR = 4.0  # radius <= this x the median radius of the cloud
 VORONOI_NEIGHBOURS = 10  # neighbours that cut a point's Voronoi cell (coverage radius)
 MID_GREY = 0.2140  # linear value of the sRGB mid grey 0.5: the colour of uncoloured points
 QUERY_CHUNK = 1 << 16  # points per k-d tree query, the unit of the progress bar
+VOTE_DIRECTIONS = 32  # views that vote for the sign of a component's normals
+VOTE_MAX_POINTS = 1 << 16  # points that take part in the vote (a random sample)
+TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is a tie
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
-                      viewpoint=None, progress: bool = True, source: str = "points") -> Surfels:
+                      viewpoint=None, smooth: bool = True, progress: bool = True,
+                      source: str = "points") -> Surfels:
     """Surfels from a bare point cloud: PCA normals, orientation, radii and areas.
 
     positions: (N, 3) float, world units
@@ -67,10 +77,13 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     normals:   (N, 3) float or None; rows that are zero or not finite (and all rows when
                None) are estimated by PCA. Given normals keep their sign unless
                ``viewpoint`` is given.
-    k:         neighbours for PCA and the density (default ``DEFAULT_K`` = 16; at least 4)
+    k:         neighbours for PCA and the density (default ``DEFAULT_K`` = 24; at least 4)
     viewpoint: (3,) sensor or camera position, world units: every normal is turned towards
                it. None: estimated normals are oriented consistently by propagation over
                the neighbour graph (outward for closed surfaces); given normals seed it.
+    smooth:    move each point along its normal onto the plane fitted to its k neighbours
+               (:func:`project_to_planes`): removes scanner noise and coordinate
+               quantisation across the surface; False keeps the positions as measured
     progress:  show tqdm progress bars on stderr (only when it is a terminal)
     source:    name for messages (e.g. the file name)
 
@@ -104,8 +117,12 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
             lengths = np.linalg.norm(nrm, axis=1)
             given = np.isfinite(lengths) & (lengths > 1e-12)
         normals_out = np.empty((n, 3), np.float64)
-        if not given.all():
-            normals_out[:] = pca_normals(pts, idx)
+        if smooth or not given.all():
+            plane_normals, centroids = pca_planes(pts, idx)
+            normals_out[:] = plane_normals
+            if smooth:
+                pts = project_to_planes(pts, plane_normals, centroids)
+                dist, idx = neighbour_distances(pts, idx)
         if given.any():
             normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
         bar.update()
@@ -159,10 +176,57 @@ def pca_normals(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
     among them). The normal is the eigenvector of the smallest eigenvalue of the
     neighbourhood's covariance matrix.
     """
-    out = np.empty((len(positions), 3), np.float64)
-    _pca_normals_kernel(np.ascontiguousarray(positions, np.float64),
-                        np.ascontiguousarray(idx, np.int64), out)
+    return pca_planes(positions, idx)[0]
+
+
+def pca_planes(positions: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane of each neighbourhood: (normals (N, 3), centroids (N, 3)).
+
+    The plane passes through the centroid of the points idx[i] and is normal to
+    :func:`pca_normals`' vector (sign arbitrary).
+    """
+    n = len(positions)
+    normals = np.empty((n, 3), np.float64)
+    centroids = np.empty((n, 3), np.float64)
+    _pca_kernel(np.ascontiguousarray(positions, np.float64),
+                np.ascontiguousarray(idx, np.int64), normals, centroids)
+    return normals, centroids
+
+
+def project_to_planes(positions: np.ndarray, normals: np.ndarray,
+                      centroids: np.ndarray) -> np.ndarray:
+    """Each point moved along its normal onto its neighbourhood's plane (smoothing).
+
+    p' = p - ((p - c) . n) n, with (n, c) from :func:`pca_planes`: scanner noise and
+    coordinate quantisation move points off the surface, mostly along its normal, and a
+    rendered surfel off the surface is seen at the wrong depth and the wrong place
+    (terraces, merge mistakes, uneven coverage). Tangential positions are kept, so the
+    sampling density does not change. The few points that would land exactly on another
+    one keep their measured position. Returns a new (N, 3) float64 array.
+    """
+    offset = np.sum((positions - centroids) * normals, axis=1)
+    out = positions - offset[:, None] * normals
+    for _ in range(4):  # a restored point could in principle meet another one
+        rows = np.ascontiguousarray(out).view(np.dtype((np.void, out.dtype.itemsize * 3)))
+        _, first = np.unique(rows.ravel(), return_index=True)
+        if len(first) == len(out):
+            break
+        again = np.ones(len(out), bool)
+        again[first] = False
+        out[again] = positions[again]
     return out
+
+
+def neighbour_distances(positions: np.ndarray, idx: np.ndarray):
+    """(dist, idx) as ``nearest_neighbours`` returns them, for given neighbour lists.
+
+    The distances from each point to its listed neighbours, each row sorted by distance
+    (the point itself, at 0, stays first): after points move a little
+    (:func:`project_to_planes`) their neighbour lists stay valid but not their distances.
+    """
+    dist = np.linalg.norm(positions[idx] - positions[:, None, :], axis=2)
+    order = np.argsort(dist, axis=1, kind="stable")
+    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
 
 
 def pca_normals_slow(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -188,8 +252,8 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     itself); fixed: (N,) bool, normals whose sign is known (kept as they are). The graph is
     the symmetric kNN graph with edge cost 1 - |n_i . n_j| (small between nearly parallel
     normals), so the sign travels along the smoothest paths. Each connected component
-    without a fixed normal is rooted at its point farthest from its centroid, oriented
-    away from the centroid (outward for a closed surface).
+    without a fixed normal gets its sign afterwards from :func:`outward_vote` (outward for
+    a closed surface).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import (
@@ -216,19 +280,8 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     roots = list(np.nonzero(fixed)[0])
     has_fixed = np.zeros(n_comp, bool)
     has_fixed[label[fixed]] = True
-    counts = np.bincount(label, minlength=n_comp)
-    centroids = np.zeros((n_comp, 3))
-    for axis in range(3):
-        centroids[:, axis] = np.bincount(label, positions[:, axis], n_comp) / counts
-    offset = positions - centroids[label]
-    far = np.sum(offset * offset, axis=1)
-    order = np.lexsort((-far, label))  # by component, farthest first
-    first = order[np.r_[0, np.nonzero(np.diff(label[order]))[0] + 1]]
-    for r in first:
-        if not has_fixed[label[r]]:
-            roots.append(r)
-            if np.dot(normals[r], offset[r]) < 0:
-                signs0[r] = -1.0
+    first = np.unique(label, return_index=True)[1]  # any point of each component
+    roots.extend(r for r in first if not has_fixed[label[r]])
     roots = np.asarray(roots, np.int64)
     tree = minimum_spanning_tree(graph).tocoo()
     virt_rows = np.full(len(roots), n)
@@ -238,7 +291,84 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     full = coo_matrix((t_cost, (t_rows, t_cols)), shape=(n + 1, n + 1)).tocsr()
     order, parent = breadth_first_order(full, n, directed=False, return_predecessors=True)
     signs = _propagate_signs(order, parent, normals, signs0, n)
-    return normals * signs[:, None]
+    out = normals * signs[:, None]
+    flip = (outward_votes(positions, out, label, n_comp) < 0) & ~has_fixed
+    out[flip[label]] *= -1.0
+    return out
+
+
+def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
+                  n_comp: int, *, directions: int = VOTE_DIRECTIONS,
+                  max_points: int = VOTE_MAX_POINTS, seed: int = 0) -> np.ndarray:
+    """How outward each component's (consistently oriented) normals are: (n_comp,) votes,
+    > 0 outward, < 0 inward.
+
+    Visibility from outside: the cloud is looked at from ``directions`` directions d
+    spread over the sphere, each through a grid of cells two point spacings wide; the
+    point nearest the viewer in each cell is visible, and a visible surface faces its
+    viewer, so it votes n . d for its component. (At most ``max_points`` points, drawn at
+    random, take part: the vote needs the shape, not every point.) A closed surface votes
+    outward from every side. An open sheet, such as the ground under a scanned statue, is
+    seen from both sides and cancels out, while what stands on it is hidden from below by
+    it and votes from above and around. Hoppe's single root (the point farthest from the
+    centroid, oriented away from it) is a rim point of the ground on the lion scan, and
+    turned the whole scan inside out after a small change of k; so did a vote of the
+    extreme points along each direction. A component that no view sees falls back to
+    that extreme-point vote, and one whose vote is a near tie (under ``TIE_FRACTION`` of
+    the votes' total weight: a single open sheet, seen alike from both sides) faces up
+    (+y, the world's up), else +z, else +x.
+    """
+    from .normalise import fibonacci_directions
+
+    n = len(positions)
+    rng = np.random.default_rng(seed)
+    pick = np.arange(n) if n <= max_points else np.sort(rng.choice(n, max_points, replace=False))
+    pts, nrm, lab = positions[pick], normals[pick], label[pick]
+    if len(pts) > 1:
+        from scipy.spatial import cKDTree
+
+        spacing = cKDTree(pts).query(pts, 2)[0][:, 1]
+        cell = 2.0 * float(np.median(spacing))
+    else:
+        cell = 1.0
+    cell = cell if cell > 0 else 1.0
+    dirs = fibonacci_directions(directions)
+    votes = np.zeros(n_comp)
+    mass = np.zeros(n_comp)  # sum of |n . d| over the votes: what a clear decision has
+    extreme = np.zeros(n_comp)
+    for d in dirs:
+        a = np.cross(d, (0.0, 1.0, 0.0) if abs(d[1]) < 0.9 else (1.0, 0.0, 0.0))
+        a /= np.linalg.norm(a)
+        b = np.cross(d, a)
+        iu, iv = _grid_cells(pts @ a, cell), _grid_cells(pts @ b, cell)
+        key = iu * (int(iv.max()) + 1) + iv
+        depth = pts @ d
+        order = np.lexsort((-depth, key))  # by cell, nearest the viewer first
+        seen = order[np.r_[0, np.nonzero(np.diff(key[order]))[0] + 1]]
+        facing = nrm[seen] @ d
+        votes += np.bincount(lab[seen], facing, n_comp)
+        mass += np.bincount(lab[seen], np.abs(facing), n_comp)
+    # a sheet that looks the same from both sides (a scanned wall, a flat patch) gets no
+    # clear vote: by convention it faces up (+y, the world's up), else +z, else +x
+    unclear = (np.abs(votes) < TIE_FRACTION * mass) & (mass > 0)
+    if unclear.any():
+        mean = np.stack([np.bincount(label, normals[:, a], n_comp) for a in (1, 2, 0)], axis=1)
+        mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
+        first = np.argmax(np.abs(mean) > 0.1, axis=1)
+        votes[unclear] = mean[np.arange(n_comp), first][unclear]
+    unseen = votes == 0
+    if unseen.any():  # components missing from the sample, or hidden everywhere
+        order = np.argsort(label, kind="stable")
+        starts = np.r_[0, np.nonzero(np.diff(label[order]))[0] + 1]
+        p_all, n_all, l_all = positions[order], normals[order], label[order]
+        for chunk in range(0, directions, 8):  # (N, 8) at a time: bounded memory
+            d = dirs[chunk:chunk + 8]
+            reach = p_all @ d.T
+            top = np.maximum.reduceat(reach, starts, axis=0)
+            support = np.where(reach >= top[l_all], n_all @ d.T, 0.0)
+            extreme += np.bincount(l_all, support.sum(axis=1), n_comp)
+        votes[unseen] = extreme[unseen]
+    return votes
 
 
 def surfel_radii(positions: np.ndarray, normals: np.ndarray, dist: np.ndarray,
@@ -286,7 +416,7 @@ def surfel_radii(positions: np.ndarray, normals: np.ndarray, dist: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _pca_normals_kernel(positions, idx, out):
+def _pca_kernel(positions, idx, out, centroids):
     n, m = idx.shape
     for p in numba.prange(n):
         mx = my = mz = 0.0
@@ -314,6 +444,9 @@ def _pca_normals_kernel(positions, idx, out):
         out[p, 0] = nx
         out[p, 1] = ny
         out[p, 2] = nz
+        centroids[p, 0] = mx
+        centroids[p, 1] = my
+        centroids[p, 2] = mz
 
 
 @numba.njit(cache=True, nogil=True)
@@ -422,6 +555,17 @@ def _cell_reach_kernel(positions, normals, idx, out):
                 if inside:
                     reach = math.sqrt(r2)
         out[p] = reach
+
+
+def _grid_cells(x: np.ndarray, cell: float, most: int = 1 << 20) -> np.ndarray:
+    """Cell index of each coordinate, 0 .. ``most``: cells of ``cell``, widened when the
+    extent would need more (wild coordinates must not overflow the int64 keys)."""
+    with np.errstate(all="ignore"):
+        x = x - np.min(x)
+        top = float(np.max(x))
+        width = max(cell, top / most) if np.isfinite(top) else np.inf
+        i = np.floor(x / width) if width > 0 and np.isfinite(width) else np.zeros_like(x)
+    return np.clip(np.nan_to_num(i, nan=0.0, posinf=most, neginf=0.0), 0, most).astype(np.int64)
 
 
 @numba.njit(cache=True, nogil=True)

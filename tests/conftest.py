@@ -40,3 +40,18 @@ def front_camera(width=64, height=64, distance=2.0, fov=40.0):
 
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+
+
+def lion_points():
+    """(positions (N, 3) float64, linear colours) of the lion scan, z up; skips without it."""
+    path = SHARED_DATA / "lion_takanawa" / "lion_takanawa_xyzrgb.ply"
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path}")
+    from plyfile import PlyData
+
+    from dofsplat.io import srgb_to_linear
+
+    v = PlyData.read(str(path))["vertex"]
+    pos = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+    rgb = np.stack([v["red"], v["green"], v["blue"]], axis=1) / 255.0
+    return pos, srgb_to_linear(rgb)

@@ -348,11 +348,11 @@ def ply_kind(header: PlyHeader) -> str:
 _KIND_WORDS = {"surfels": "a surfel PLY", "gaussians": "a 3D Gaussian Splatting PLY",
                "mesh": "a triangle mesh", "points": "a point cloud (a PLY without faces)"}
 _KIND_OPTIONS = {"surfels": (), "gaussians": (), "mesh": ("points", "texture"),
-                 "points": ("k",)}
+                 "points": ("k", "smooth")}
 
 
 def read_ply(path, *, material: Material | None = None, points: int | str | None = None,
-             k: int | None = None, texture=None) -> Surfels:
+             k: int | None = None, smooth: bool | None = None, texture=None) -> Surfels:
     """Load any PLY file as surfels: the header says what it holds (:func:`ply_kind`).
 
     * surfels: :func:`read_surfel_ply`, as they are;
@@ -364,7 +364,8 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
       texture_v) with ``texture`` (an image file) or the image a ``comment TextureFile``
       line names;
     * bare points: normals (nx ny nz) if present, colours as for meshes, then
-      :func:`dofsplat.pointcloud.points_to_surfels` with ``k`` neighbours.
+      :func:`dofsplat.pointcloud.points_to_surfels` with ``k`` neighbours and ``smooth``
+      (None: True, points moved onto their neighbourhood's plane).
 
     ASCII bodies are read by numpy's tokeniser when every face has the same number of
     vertices (plyfile parses ASCII line by line in Python: ten times slower), else and for
@@ -381,7 +382,7 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     if vertex.count == 0:
         raise DofsplatError(f"{path}: the vertex element is empty (0 points)")
     kind = ply_kind(header)
-    given = {"points": points, "k": k, "texture": texture}
+    given = {"points": points, "k": k, "smooth": smooth, "texture": texture}
     wrong = [name for name, v in given.items() if v is not None and name not in _KIND_OPTIONS[kind]]
     if wrong:
         raise DofsplatError(f"{path} is {_KIND_WORDS[kind]}: option(s) {', '.join(wrong)} do "
@@ -400,7 +401,7 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     if kind == "mesh":
         return _mesh_surfels(path, header, columns, elements.get("face"), points, texture,
                              material)
-    return _point_surfels(path, columns, k, material)
+    return _point_surfels(path, columns, k, smooth, material)
 
 
 def _read_body(path: Path, header: PlyHeader, faces: bool) -> dict:
@@ -483,7 +484,7 @@ def _read_ascii_body(data: bytes, header: PlyHeader, source: str) -> dict | None
     return result
 
 
-def _point_surfels(path: Path, columns: dict, k, material) -> Surfels:
+def _point_surfels(path: Path, columns: dict, k, smooth, material) -> Surfels:
     """Bare points (normals optional) to surfels through :mod:`dofsplat.pointcloud`."""
     from ..pointcloud import points_to_surfels
 
@@ -495,7 +496,8 @@ def _point_surfels(path: Path, columns: dict, k, material) -> Surfels:
     keep = finite_rows(positions, normals, colors, opacity, source=str(path))
     positions, normals, colors, opacity = (None if a is None else a[keep]
                                            for a in (positions, normals, colors, opacity))
-    surfels = points_to_surfels(positions, colors, normals, k=k, source=str(path))
+    surfels = points_to_surfels(positions, colors, normals, k=k, smooth=smooth is not False,
+                                source=str(path))
     if opacity is not None and len(surfels) == len(opacity):
         surfels = replace(surfels, opacity=opacity)
     return surfels if material is None else replace(surfels, material=material)
