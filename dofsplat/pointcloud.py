@@ -52,8 +52,9 @@ from .errors import DofsplatError
 from .surfels import Surfels
 
 DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
-# quantisation needs 24 for a steady plane fit (16: 0.92 / 0.95 of its pixels sum to 1 +- 0.1,
-# 24: 0.96 / 0.97; the dragon is the same with either; bench/RESULTS.md)
+# quantisation needs that many for a steady plane fit (of its interior pixels, 0.93 / 0.96
+# sum to 1 +- 0.1 with k = 12, 0.950 / 0.967 with 16, 0.960 / 0.970 with 24; the dragon
+# reads the same with 16 or 24; docs/maths.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
