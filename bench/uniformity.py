@@ -17,6 +17,7 @@ the fixed 2 px band of ``uniformity``'s default.
     python bench/uniformity.py                 # all models, both methods (a few minutes)
     python bench/uniformity.py --quick         # 512 x 512 only, object method only
     python bench/uniformity.py --models plane  # one model
+    python bench/uniformity.py --quick --models lion --k 16 --no-smooth  # other preprocessing
 """
 
 from __future__ import annotations
@@ -61,18 +62,19 @@ def read_ply_points(path: Path):
     return pos, col
 
 
-def model(name: str):
-    """(surfels, view directions, up vector, preprocessing seconds) for a model name."""
+def model(name: str, **options):
+    """(surfels, view directions, up vector, preprocessing seconds) for a model name;
+    options (k, smooth) go to points_to_surfels."""
     t0 = time.perf_counter()
     if name == "dragon":
         pos, col = read_ply_points(DATA / "stanford_dragon" / "dragon_vrip.ply.gz")
         t0 = time.perf_counter()
-        surfels = points_to_surfels(pos, col, progress=False, source="dragon")
+        surfels = points_to_surfels(pos, col, progress=False, source="dragon", **options)
         return surfels, [(0, 0, 1), (1, 0.3, 0.2)], (0, 1, 0), time.perf_counter() - t0
     if name == "lion":
         pos, col = read_ply_points(DATA / "lion_takanawa" / "lion_takanawa_xyzrgb.ply")
         t0 = time.perf_counter()
-        surfels = points_to_surfels(pos, col, progress=False, source="lion")
+        surfels = points_to_surfels(pos, col, progress=False, source="lion", **options)
         return surfels, [(0, -1, 0.3), (1, 0, 0.3)], (0, 0, 1), time.perf_counter() - t0
     if name == "plane":
         return textured_plane(512), [(0, 1, 0.3), (0, 1, 1.2)], (0, 1, 0), 0.0
@@ -83,7 +85,7 @@ def model(name: str):
         pos = plane.positions.astype(np.float64)
         pos[:, [0, 2]] += rng.uniform(-0.5, 0.5, (len(pos), 2)) * h  # within its grid cell
         t0 = time.perf_counter()
-        surfels = points_to_surfels(pos, plane.colors, progress=False, source="plane")
+        surfels = points_to_surfels(pos, plane.colors, progress=False, source="plane", **options)
         return surfels, [(0, 1, 0.3), (0, 1, 1.2)], (0, 1, 0), time.perf_counter() - t0
     raise SystemExit(f"unknown model {name!r}; choose from {', '.join(MODELS)}")
 
@@ -124,6 +126,10 @@ def main(argv=None):
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--quick", action="store_true",
                     help="512 x 512 only, object method only")
+    ap.add_argument("--k", type=int, default=None,
+                    help="neighbours for points_to_surfels (default: its DEFAULT_K)")
+    ap.add_argument("--no-smooth", dest="smooth", action="store_false",
+                    help="keep the points' measured positions (points_to_surfels)")
     args = ap.parse_args(argv)
     methods = ("none", "object") if args.quick else ("none", "object", "render")
     sizes = (512,) if args.quick else (512, None)
@@ -141,7 +147,7 @@ def main(argv=None):
         if name in ("dragon", "lion") and not DATA.is_dir():
             print(f"| {name} | (skipped: {DATA} not found) |", file=sys.stderr)
             continue
-        surfels, directions, up, t_pre = model(name)
+        surfels, directions, up, t_pre = model(name, k=args.k, smooth=args.smooth)
         views = {size: cameras(surfels, directions, up, size) for size in sizes}
         size_note = ", ".join(f"{views[None][0].width}²" for _ in [0]) if None in views else ""
         for method in methods:

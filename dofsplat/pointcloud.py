@@ -53,7 +53,7 @@ from .surfels import Surfels
 
 DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
 # quantisation needs that many for a steady plane fit (of its interior pixels, 0.93 / 0.96
-# sum to 1 +- 0.1 with k = 12, 0.950 / 0.967 with 16, 0.960 / 0.970 with 24; the dragon
+# sum to 1 +- 0.1 with k = 12, 0.949 / 0.967 with 16, 0.960 / 0.970 with 24; the dragon
 # reads the same with 16 or 24; docs/maths.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
@@ -208,8 +208,7 @@ def project_to_planes(positions: np.ndarray, normals: np.ndarray,
     offset = np.sum((positions - centroids) * normals, axis=1)
     out = positions - offset[:, None] * normals
     for _ in range(4):  # a restored point could in principle meet another one
-        rows = np.ascontiguousarray(out).view(np.dtype((np.void, out.dtype.itemsize * 3)))
-        _, first = np.unique(rows.ravel(), return_index=True)
+        _, first = np.unique(_row_keys(out), return_index=True)
         if len(first) == len(out):
             break
         again = np.ones(len(out), bool)
@@ -253,8 +252,8 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     itself); fixed: (N,) bool, normals whose sign is known (kept as they are). The graph is
     the symmetric kNN graph with edge cost 1 - |n_i . n_j| (small between nearly parallel
     normals), so the sign travels along the smoothest paths. Each connected component
-    without a fixed normal gets its sign afterwards from :func:`outward_vote` (outward for
-    a closed surface).
+    without a fixed normal gets its sign afterwards from :func:`outward_votes` (outward
+    for a closed surface).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import (
@@ -277,7 +276,6 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     # roots: a virtual node n joined to every fixed point and to one point of each
     # component that has none
     n_comp, label = connected_components(graph, directed=False)
-    signs0 = np.ones(n, np.float64)
     roots = list(np.nonzero(fixed)[0])
     has_fixed = np.zeros(n_comp, bool)
     has_fixed[label[fixed]] = True
@@ -291,7 +289,7 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     t_cost = np.concatenate([tree.data, np.full(len(roots), 1e-9)])
     full = coo_matrix((t_cost, (t_rows, t_cols)), shape=(n + 1, n + 1)).tocsr()
     order, parent = breadth_first_order(full, n, directed=False, return_predecessors=True)
-    signs = _propagate_signs(order, parent, normals, signs0, n)
+    signs = _propagate_signs(order, parent, normals, np.ones(n), n)
     out = normals * signs[:, None]
     flip = (outward_votes(positions, out, label, n_comp) < 0) & ~has_fixed
     out[flip[label]] *= -1.0
@@ -325,13 +323,11 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
     rng = np.random.default_rng(seed)
     pick = np.arange(n) if n <= max_points else np.sort(rng.choice(n, max_points, replace=False))
     pts, nrm, lab = positions[pick], normals[pick], label[pick]
+    cell = 0.0
     if len(pts) > 1:
         from scipy.spatial import cKDTree
 
-        spacing = cKDTree(pts).query(pts, 2)[0][:, 1]
-        cell = 2.0 * float(np.median(spacing))
-    else:
-        cell = 1.0
+        cell = 2.0 * float(np.median(cKDTree(pts).query(pts, 2)[0][:, 1]))
     cell = cell if cell > 0 else 1.0
     dirs = fibonacci_directions(directions)
     votes = np.zeros(n_comp)
@@ -619,10 +615,15 @@ def _check_inputs(positions, colors, normals, source):
     return pts, cols, nrm
 
 
+def _row_keys(pts: np.ndarray) -> np.ndarray:
+    """Each (x, y, z) row as one opaque bytes value: np.unique on them finds equal rows
+    faster than np.unique(axis=0)."""
+    return np.ascontiguousarray(pts).view(np.dtype((np.void, pts.dtype.itemsize * 3))).ravel()
+
+
 def _merge_duplicates(pts, cols, nrm, source):
     """Merge points at exactly the same position: first normal, mean colour."""
-    rows = np.ascontiguousarray(pts).view(np.dtype((np.void, pts.dtype.itemsize * 3))).ravel()
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)  # bytes: fast
+    _, first, inverse = np.unique(_row_keys(pts), return_index=True, return_inverse=True)
     if len(first) == len(pts):
         return pts, cols, nrm
     inverse = inverse.ravel()

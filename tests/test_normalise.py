@@ -246,7 +246,7 @@ def test_lion_renders_sum_to_1_after_normalisation():
     # the lion scan (z up), smoothed (its coordinates are quantised to 1 cm), 512 x 512
     # (surfels about 0.8 px), interior pixels edge_margin (4 px) inside every edge:
     # measured 0.947 / 0.958 before, 0.960 / 0.970 after. Unsmoothed, the normalised scan
-    # reads 0.84 / 0.91: the smoothing does most of the work here (bench/RESULTS.md)
+    # reads 0.845 / 0.913: the smoothing does most of the work here (bench/RESULTS.md)
     pos, rgb = lion_points()
     s = points_to_surfels(pos, rgb, progress=False)
     after = normalise(s, "object", progress=False)

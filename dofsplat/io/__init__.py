@@ -50,9 +50,10 @@ def load(path, **options) -> Surfels:
 
     options are passed to the loader: ``material`` for all; ``points`` (sample count or
     "vertices") and ``texture`` (an image file) for meshes; ``k`` (neighbours for normals
-    and radii) and ``smooth`` (False keeps the measured positions) for point clouds (docs/formats.md lists them). Raises DofsplatError for a
-    missing file, an unsupported extension, an option the loader does not take, or
-    whatever the loader finds wrong with the file.
+    and radii) and ``smooth`` (False keeps the measured positions) for point clouds
+    (docs/formats.md lists them). Raises DofsplatError for a missing file, an unsupported
+    extension, an option the loader does not take, or whatever the loader finds wrong
+    with the file.
     """
     path = Path(path)
     if not path.exists():

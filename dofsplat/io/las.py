@@ -32,9 +32,9 @@ LAS_EXTENSIONS = (".las", ".laz")
 
 
 def read_las(path, *, material: Material | None = None, k: int | None = None,
-             smooth: bool | None = None) -> Surfels:
-    """Load a .las / .laz file as surfels; k: neighbours for normals and radii; smooth
-    (None: True): move the points onto their neighbourhood's plane (points_to_surfels)."""
+             smooth: bool = True) -> Surfels:
+    """Load a .las / .laz file as surfels; k: neighbours for normals and radii; smooth:
+    move the points onto their neighbourhood's plane (points_to_surfels)."""
     from dataclasses import replace
 
     from ..pointcloud import points_to_surfels
@@ -49,7 +49,7 @@ def read_las(path, *, material: Material | None = None, k: int | None = None,
     colors = None if colors is None else colors[keep]
     positions = _recentre(positions, scale, str(path))
     positions = z_up_to_y_up(positions)
-    surfels = points_to_surfels(positions, colors, None, k=k, smooth=smooth is not False,
+    surfels = points_to_surfels(positions, colors, None, k=k, smooth=smooth,
                                 source=str(path))
     return surfels if material is None else replace(surfels, material=material)
 

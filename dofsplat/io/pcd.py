@@ -72,9 +72,9 @@ class PcdHeader:
 
 
 def read_pcd(path, *, material: Material | None = None, k: int | None = None,
-             smooth: bool | None = None) -> Surfels:
+             smooth: bool = True) -> Surfels:
     """Load a .pcd file as surfels (see the module docstring); k: neighbours for normals
-    and radii; smooth (None: True): move the points onto their neighbourhood's plane
+    and radii; smooth: move the points onto their neighbourhood's plane
     (points_to_surfels). DofsplatError for a damaged file or one without valid points."""
     from ..pointcloud import points_to_surfels
 
@@ -84,7 +84,7 @@ def read_pcd(path, *, material: Material | None = None, k: int | None = None,
     header, columns = read_pcd_columns(path)
     positions, colors, normals, viewpoint = pcd_points(header, columns, str(path))
     surfels = points_to_surfels(positions, colors, normals, k=k, viewpoint=viewpoint,
-                                smooth=smooth is not False, source=str(path))
+                                smooth=smooth, source=str(path))
     return surfels if material is None else replace(surfels, material=material)
 
 
