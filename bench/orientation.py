@@ -51,7 +51,7 @@ def agreement(surfels, ref_positions, ref_normals):
 
 def lion(ks, old_rule: bool):
     pos, _ = read_ply_points(DATA / "lion_takanawa" / "lion_takanawa_xyzrgb.ply")
-    ref = pc.points_to_surfels(pos, progress=False)  # the defaults, with the vote
+    ref = pc.points_to_surfels(pos, normalise="none", progress=False)  # defaults, vote
     ref_pos, ref_nrm = ref.positions.astype(np.float64), ref.normals.astype(np.float64)
     if old_rule:
         pc.outward_votes = single_root_votes
@@ -59,7 +59,8 @@ def lion(ks, old_rule: bool):
     print("|---:|---|---:|---:|")
     for k in ks:
         for smooth in (False, True):
-            s = pc.points_to_surfels(pos, k=k, smooth=smooth, progress=False)
+            s = pc.points_to_surfels(pos, k=k, smooth=smooth, normalise="none",
+                                     progress=False)
             z, nz = s.positions[:, 2], s.normals[:, 2]
             ground = (z < np.quantile(z, 0.1)) & (np.abs(nz) > 0.9)
             agree, _ = agreement(s, ref_pos, ref_nrm)
@@ -91,7 +92,8 @@ def dragons():
     for name in ("dragon_vrip_res4.ply", "dragon_vrip.ply.gz"):
         pts, vert_n, used = mesh_normals(DATA / "stanford_dragon" / name)
         for k, smooth in ((None, True), (16, False)):
-            s = pc.points_to_surfels(pts, k=k, smooth=smooth, progress=False)
+            s = pc.points_to_surfels(pts, k=k, smooth=smooth, normalise="none",
+                                     progress=False)
             if len(s) == len(pts):  # no duplicates merged: the same order
                 nearest = np.arange(len(pts))
             else:  # smoothing moves points: match the original positions

@@ -4,7 +4,7 @@
     dofsplat demo [-o demo.png] [the same options; the scene supplies the defaults]
     dofsplat reference (MODEL.ply | --demo) [-o reference.png] [--samples N] [the same options]
     dofsplat compare A B [--diff DIFF.png] [--json FILE.json]
-    dofsplat convert INPUT -o OUT.ply [--k K] [--normalise none|object|render]
+    dofsplat convert INPUT -o OUT.ply [--k K] [--normalise object|render|none]
 
 ``render`` and ``demo`` take ``--method ours|postfilter`` (our DOF, or the post-process
 baseline of :mod:`dofsplat.postfilter`); ``reference`` averages pinhole renders over the
@@ -57,7 +57,7 @@ examples:
   dofsplat demo --method postfilter -o postfilter.png
   dofsplat reference --demo -o reference.png --samples 200
   dofsplat compare demo.png reference.png --diff diff.png
-  dofsplat convert scan.laz -o scan-surfels.ply --normalise object
+  dofsplat convert scan.laz -o scan-surfels.ply
 """
 
 
@@ -188,7 +188,6 @@ def run_convert(args) -> int:
     import time
 
     from .io import SAVERS, check_writable_path, load, save_surfels
-    from .normalise import normalise
 
     out = Path(args.output)
     if not any(out.name.lower().endswith(ext) for ext in SAVERS):
@@ -199,11 +198,10 @@ def run_convert(args) -> int:
         raise DofsplatError(f"the output {out} would overwrite the input")
     t0 = time.perf_counter()
     surfels = load(args.input, **_loader_options(args))
-    surfels = normalise(surfels, args.normalise,
-                        progress=not args.quiet and sys.stderr.isatty())
     save_surfels(out, surfels)
     if not args.quiet:
-        print(f"wrote {out} ({len(surfels):,} surfels, normalisation: {args.normalise}, "
+        how = args.normalise or _default_normalisation(Path(args.input))
+        print(f"wrote {out} ({len(surfels):,} surfels, normalisation: {how}, "
               f"{time.perf_counter() - t0:.1f} s)", file=sys.stderr)
     return EXIT_OK
 
@@ -540,9 +538,9 @@ def build_parser() -> argparse.ArgumentParser:
         "convert", allow_abbrev=False, formatter_class=_HelpFormatter,
         help="turn a model file into normalised surfels, saved as a surfel PLY",
         description="Load any model file as 'render' does (points get normals and radii, "
-                    "meshes and Gaussian splats become surfels), compute the per-surfel "
-                    "normalisation so that splats sum to 1 over the surface (paper Section "
-                    "6.3), and save the surfels, so that this is done once.",
+                    "meshes and Gaussian splats become surfels, points and meshes get the "
+                    "per-surfel normalisation so that splats sum to 1 over the surface, paper "
+                    "Section 6.3), and save the surfels, so that this is done once.",
         epilog="examples:\n  dofsplat convert scan.laz -o scan-surfels.ply\n"
                "  dofsplat convert dragon.ply.gz -o dragon.ply --points vertices "
                "--normalise render")
@@ -550,11 +548,6 @@ def build_parser() -> argparse.ArgumentParser:
                          help="model file: " + ", ".join(_MODEL_EXTENSIONS))
     convert.add_argument("-o", "--output", metavar="OUT.ply", required=True,
                          help="surfel PLY to write (.ply, binary, or .ply.gz)")
-    convert.add_argument("--normalise", choices=("none", "object", "render"), default="object",
-                         help="per-surfel normalisation: object (default; neighbours' basis "
-                              "functions summed in each surfel's tangent plane, seconds), "
-                              "render (the paper's: weights read back from renders, slower) "
-                              "or none")
     convert.add_argument("-q", "--quiet", action="store_true",
                          help="no progress bars, no summary line")
     _add_input_options(convert)
@@ -591,13 +584,33 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--no-smooth", dest="smooth", action="store_false", default=None,
                        help="point clouds: keep the positions as measured (default: each "
                             "point is moved along its normal onto the plane of its K "
-                            "neighbours, which removes scanner noise and quantisation)")
+                            "neighbours, which removes scanner noise and quantisation); "
+                            "meshes: samples on the flat triangles (default: on the Phong "
+                            "tessellation that the vertex normals describe)")
+    group.add_argument("--normalise", choices=("object", "render", "none"),
+                       help="per-surfel normalisation, so that splats sum to 1 over the "
+                            "surface (paper Section 6.3): object (neighbours' basis functions "
+                            "summed in each surfel's tangent plane, seconds), render (the "
+                            "paper's: weights read back from renders, slower) or none. "
+                            "Default: object for points and meshes; a surfel or 3DGS file is "
+                            "taken as it is")
 
 
 def _loader_options(args) -> dict:
     """The input options the user gave, as keywords for dofsplat.io.load."""
-    names = ("points", "texture", "k", "smooth")
+    names = ("points", "texture", "k", "smooth", "normalise")
     return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+
+
+def _default_normalisation(path: Path) -> str:
+    """What the loaders do without --normalise: "object" for points and meshes, "none" for
+    a surfel or 3DGS PLY (taken as it is)."""
+    from .io.ply import ply_kind, read_ply_header
+
+    ply = path.name.lower().endswith((".ply", ".ply.gz"))
+    if ply and ply_kind(read_ply_header(path)) in ("surfels", "gaussians"):
+        return "none (as stored)"
+    return "object"
 
 
 def _sample_count(text: str):

@@ -53,9 +53,7 @@ def normalise(surfels: Surfels, method: str = "object", *, progress: bool = True
 
     "none" returns the model as it is.
     """
-    if method not in METHODS:
-        raise DofsplatError(f"unknown normalisation {method!r}; choose one of "
-                            f"{', '.join(METHODS)}")
+    check_method(method)
     if method == "none":
         if options:
             raise DofsplatError(f"normalisation 'none' takes no options, got {sorted(options)}")
@@ -65,6 +63,15 @@ def normalise(surfels: Surfels, method: str = "object", *, progress: bool = True
     else:
         weight = render_weights(surfels, progress=progress, **options)
     return replace(surfels, weight=weight)
+
+
+def check_method(method) -> str:
+    """``method`` if it names a normalisation, else DofsplatError (loaders check it before
+    reading a file)."""
+    if not isinstance(method, str) or method not in METHODS:
+        raise DofsplatError(f"unknown normalisation {method!r}; choose one of "
+                            f"{', '.join(METHODS)}")
+    return method
 
 
 # -- object space ------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 A scan or a mesh's vertices give positions (and perhaps colours); a surfel also needs a
 normal and a radius. :func:`points_to_surfels` estimates both from each point's k nearest
-neighbours (scipy's k-d tree), in four steps:
+neighbours (scipy's k-d tree), in five steps:
 
 1. **neighbours**: the k nearest neighbours of every point (exact duplicates are merged
    first: they carry no information and make the distances degenerate);
@@ -33,8 +33,9 @@ neighbours (scipy's k-d tree), in four steps:
    h / sqrt(2)): r = h and weight = 1, the convention of ``surfels.py``. Radii are capped
    near outliers (a few points far from the rest).
 
-The per-point normalisation (``dofsplat.normalise``) then corrects the weights so that the
-splats sum to 1 over the surface.
+5. **normalisation**: the per-point normalisation of ``dofsplat.normalise`` (paper Section
+   6.3; the object-space method unless ``normalise`` says otherwise) corrects the weights so
+   that the splats sum to 1 over the surface.
 
 All steps are vectorised or jitted; the 437k-point dragon takes a few seconds on two cores.
 """
@@ -69,8 +70,8 @@ TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
-                      viewpoint=None, smooth: bool = True, progress: bool = True,
-                      source: str = "points") -> Surfels:
+                      viewpoint=None, smooth: bool = True, normalise: str = "object",
+                      progress: bool = True, source: str = "points") -> Surfels:
     """Surfels from a bare point cloud: PCA normals, orientation, radii and areas.
 
     positions: (N, 3) float, world units
@@ -85,15 +86,22 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     smooth:    move each point along its normal onto the plane fitted to its k neighbours
                (:func:`project_to_planes`): removes scanner noise and coordinate
                quantisation across the surface; False keeps the positions as measured
+    normalise: the per-surfel normalisation (:func:`dofsplat.normalise.normalise`) that
+               makes the splats sum to 1 over the surface: "object" (default), "render",
+               or "none" (the weights of step 4)
     progress:  show tqdm progress bars on stderr (only when it is a terminal)
     source:    name for messages (e.g. the file name)
 
     Rows with NaN or inf positions are dropped with a warning; exact duplicate positions
     are merged (colours averaged, the first normal kept). Raises DofsplatError for fewer
     than 3 distinct points or malformed arrays. Returns ``Surfels`` whose ``weight`` is
-    the area each surfel stands for over r^2 (module docstring, step 4); normalise them
-    with ``dofsplat.normalise.normalise``.
+    the area each surfel stands for over r^2 (module docstring, step 4), normalised
+    unless ``normalise="none"``.
     """
+    from .normalise import check_method
+    from .normalise import normalise as normalise_surfels
+
+    check_method(normalise)
     pts, cols, nrm = _check_inputs(positions, colors, normals, source)
     pts, cols, nrm = _merge_duplicates(pts, cols, nrm, source)
     n = len(pts)
@@ -107,7 +115,8 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
         if vp.shape != (3,) or not np.all(np.isfinite(vp)):
             raise DofsplatError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
 
-    with _stage_bar(4, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
+    stages = 4 if normalise == "none" else 5
+    with _stage_bar(stages, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
         bar.set_postfix_str("neighbours")
         dist, idx = nearest_neighbours(pts, k)
         bar.update()
@@ -139,10 +148,15 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
         bar.set_postfix_str("radii")
         radius, area_weight = surfel_radii(pts, normals_out, dist, idx)
         bar.update()
-    if cols is None:
-        cols = np.full((n, 3), MID_GREY, np.float32)
-    return Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols,
-                   weight=area_weight)
+        if cols is None:
+            cols = np.full((n, 3), MID_GREY, np.float32)
+        surfels = Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols,
+                          weight=area_weight)
+        if normalise != "none":
+            bar.set_postfix_str(f"normalise ({normalise})")
+            surfels = normalise_surfels(surfels, normalise, progress=False)
+            bar.update()
+    return surfels
 
 
 # -- steps -------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ def jittered_plane(n=80, h=0.02, seed=7):
     x, y = np.meshgrid(g, g)
     pts = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
     pts[:, :2] += rng.uniform(-0.5, 0.5, (n * n, 2)) * h
-    return points_to_surfels(pts, progress=False)
+    return points_to_surfels(pts, normalise="none", progress=False)
 
 
 def face_on(size):
@@ -59,7 +59,7 @@ def test_object_sums_match_their_numpy_twin(elliptical, smooth):
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(1500, 3))
     pts /= np.linalg.norm(pts, axis=1)[:, None]
-    s = points_to_surfels(pts, progress=False)
+    s = points_to_surfels(pts, normalise="none", progress=False)
     if elliptical:
         s = dataclasses.replace(s, radius=s.radius * 1.3, tangent=rng.normal(size=(len(s), 3)),
                                 radius_v=s.radius * 0.8)
@@ -235,7 +235,7 @@ def test_dragon_renders_sum_to_1_after_normalisation():
     # the 437,645 vertices of the full dragon as bare points, at the CLI's 512 x 512
     # (surfels about half a pixel wide), interior pixels edge_margin (4 px) inside every
     # edge: measured 0.68 / 0.70 before, 0.979 / 0.981 after
-    s = points_to_surfels(_dragon_vertices(), progress=False)
+    s = points_to_surfels(_dragon_vertices(), normalise="none", progress=False)
     after = normalise(s, "object", progress=False)
     for cam in _views(s, [(0, 0, 1), (1, 0.3, 0.2)], (0, 1, 0)):
         assert measured_inside(s, cam) < 0.8
@@ -248,7 +248,7 @@ def test_lion_renders_sum_to_1_after_normalisation():
     # measured 0.947 / 0.958 before, 0.960 / 0.970 after. Unsmoothed, the normalised scan
     # reads 0.845 / 0.913: the smoothing does most of the work here (bench/RESULTS.md)
     pos, rgb = lion_points()
-    s = points_to_surfels(pos, rgb, progress=False)
+    s = points_to_surfels(pos, rgb, normalise="none", progress=False)
     after = normalise(s, "object", progress=False)
     for cam in _views(s, [(0, -1, 0.3), (1, 0, 0.3)], (0, 0, 1)):
         before, now = measured_inside(s, cam), measured_inside(after, cam)
@@ -299,3 +299,52 @@ def test_convert_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, extra
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("dofsplat: error:") and message in err
     assert set(tmp_path.rglob("*")) == before
+
+
+# -- the loaders' default normalisation ----------------------------------------------------
+
+
+def test_loaders_normalise_points_and_keep_surfel_files(tmp_path, capsys):
+    from dofsplat.cli import main
+    from dofsplat.io import load, save_surfels
+
+    src = tmp_path / "points.ply"
+    _write_points_ply(src, jittered_plane(30).positions)
+    raw = load(src, normalise="none")
+    default = load(src)
+    np.testing.assert_array_equal(default.positions, raw.positions)
+    assert not np.allclose(default.weight, raw.weight)
+    np.testing.assert_allclose(default.weight, object_weights(raw, progress=False), rtol=1e-6)
+
+    # a surfel file is taken with its stored weights, unless a normalisation is asked for
+    stored = tmp_path / "surfels.ply"
+    save_surfels(stored, raw)
+    np.testing.assert_array_equal(load(stored).weight, raw.weight)
+    np.testing.assert_allclose(load(stored, normalise="object").weight, default.weight,
+                               rtol=1e-6)
+    out = tmp_path / "again.ply"
+    assert main(["convert", str(stored), "-o", str(out)]) == 0
+    assert "normalisation: none (as stored)" in capsys.readouterr().err
+    np.testing.assert_array_equal(load(out).weight, raw.weight)
+
+    # a bad method is an error before the file is read
+    with pytest.raises(DofsplatError, match="unknown normalisation 'pixels'"):
+        load(tmp_path / "points.ply", normalise="pixels")
+    with pytest.raises(DofsplatError, match="unknown normalisation"):
+        points_to_surfels(raw.positions, normalise="Object", progress=False)
+
+
+def test_render_normalise_option(tmp_path):
+    from dofsplat.cli import main
+
+    src = tmp_path / "points.ply"
+    _write_points_ply(src, jittered_plane(40).positions)
+    outs = {}
+    for method in (None, "none"):
+        out = tmp_path / f"{method}.npy"
+        extra = [] if method is None else ["--normalise", method]
+        assert main(["render", str(src), "-o", str(out), "--size", "96x96", "--no-dof",
+                     "--shading", "none", "-q"] + extra) == 0
+        outs[method] = np.load(out)
+    # the default (object-space) normalisation changes the coverage at the plane's rim
+    assert np.abs(outs[None][..., 3] - outs["none"][..., 3]).max() > 0.01

@@ -247,7 +247,7 @@ def test_irregular_samples_get_covering_disks_and_their_area():
     h = 0.02
     pts = grid_points(80, h)
     pts[:, :2] += rng.uniform(-0.5, 0.5, (len(pts), 2)) * h
-    s = points_to_surfels(pts, progress=False)
+    s = points_to_surfels(pts, normalise="none", progress=False)
     inner = np.all(np.abs(pts[:, :2]) < 0.8 - 5 * h, axis=1)
     area = s.radius ** 2 * s.weight
     assert abs(np.mean(area[inner]) / h ** 2 - 1) < 0.05  # the density estimate

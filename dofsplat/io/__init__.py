@@ -50,8 +50,10 @@ def load(path, **options) -> Surfels:
 
     options are passed to the loader: ``material`` for all; ``points`` (sample count or
     "vertices") and ``texture`` (an image file) for meshes; ``k`` (neighbours for normals
-    and radii) and ``smooth`` (False keeps the measured positions) for point clouds
-    (docs/formats.md lists them). Raises DofsplatError for a missing file, an unsupported
+    and radii) and ``smooth`` (False keeps the measured positions) for point clouds;
+    ``normalise`` ("object", the default for points and meshes, "render" or "none": the
+    per-surfel normalisation of Section 6.3; a surfel or 3DGS PLY is taken as it is unless
+    given one) for all (docs/formats.md lists them). Raises DofsplatError for a missing file, an unsupported
     extension, an option the loader does not take, or whatever the loader finds wrong
     with the file.
     """

@@ -32,14 +32,17 @@ LAS_EXTENSIONS = (".las", ".laz")
 
 
 def read_las(path, *, material: Material | None = None, k: int | None = None,
-             smooth: bool = True) -> Surfels:
+             smooth: bool = True, normalise: str = "object") -> Surfels:
     """Load a .las / .laz file as surfels; k: neighbours for normals and radii; smooth:
-    move the points onto their neighbourhood's plane (points_to_surfels)."""
+    move the points onto their neighbourhood's plane; normalise: the per-surfel
+    normalisation, "object", "render" or "none" (all three: points_to_surfels)."""
     from dataclasses import replace
 
+    from ..normalise import check_method
     from ..pointcloud import points_to_surfels
     from .ply import finite_rows
 
+    check_method(normalise)
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
@@ -50,7 +53,7 @@ def read_las(path, *, material: Material | None = None, k: int | None = None,
     positions = _recentre(positions, scale, str(path))
     positions = z_up_to_y_up(positions)
     surfels = points_to_surfels(positions, colors, None, k=k, smooth=smooth,
-                                source=str(path))
+                                normalise=normalise, source=str(path))
     return surfels if material is None else replace(surfels, material=material)
 
 

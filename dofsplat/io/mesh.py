@@ -31,17 +31,21 @@ MESH_EXTENSIONS = (".obj", ".gltf", ".glb", ".stl", ".off")
 
 
 def read_mesh(path, *, material: Material | None = None, points: int | str | None = None,
-              texture=None) -> Surfels:
+              texture=None, smooth: bool = True, normalise: str = "object") -> Surfels:
     """Load a mesh file as surfels.
 
     points: samples over the whole mesh (None: the default of ``mesh_to_surfels``;
     "vertices": one surfel per vertex). texture: an image file applied through the mesh's
     texture coordinates to every part that has them, replacing the file's own textures.
+    smooth: samples on the Phong tessellation of the faces (False: on the flat faces).
+    normalise: the per-surfel normalisation, "object", "render" or "none".
     Raises DofsplatError for an unreadable file, a file without triangles, or a texture
     for a mesh without texture coordinates.
     """
     from ..meshes import mesh_to_surfels
+    from ..normalise import check_method
 
+    check_method(normalise)
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
@@ -65,7 +69,8 @@ def read_mesh(path, *, material: Material | None = None, points: int | str | Non
              for p in parts):
         warnings.warn(f"{path}: the mesh has texture coordinates but no texture image; "
                       "give one with --texture FILE", stacklevel=2)
-    return mesh_to_surfels(parts, points, material=material, source=str(path))
+    return mesh_to_surfels(parts, points, material=material, smooth=smooth,
+                           normalise=normalise, source=str(path))
 
 
 def _load_scene(path: Path):

@@ -72,19 +72,22 @@ class PcdHeader:
 
 
 def read_pcd(path, *, material: Material | None = None, k: int | None = None,
-             smooth: bool = True) -> Surfels:
+             smooth: bool = True, normalise: str = "object") -> Surfels:
     """Load a .pcd file as surfels (see the module docstring); k: neighbours for normals
-    and radii; smooth: move the points onto their neighbourhood's plane
-    (points_to_surfels). DofsplatError for a damaged file or one without valid points."""
+    and radii; smooth: move the points onto their neighbourhood's plane; normalise: the
+    per-surfel normalisation, "object", "render" or "none" (all three: points_to_surfels).
+    DofsplatError for a damaged file or one without valid points."""
+    from ..normalise import check_method
     from ..pointcloud import points_to_surfels
 
+    check_method(normalise)
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
     header, columns = read_pcd_columns(path)
     positions, colors, normals, viewpoint = pcd_points(header, columns, str(path))
     surfels = points_to_surfels(positions, colors, normals, k=k, viewpoint=viewpoint,
-                                smooth=smooth, source=str(path))
+                                smooth=smooth, normalise=normalise, source=str(path))
     return surfels if material is None else replace(surfels, material=material)
 
 

@@ -96,8 +96,12 @@ def _read_elements(path: Path, faces: bool = False) -> dict[str, dict[str, np.nd
     """The ``vertex`` element's scalar properties, and with faces=True the ``face``
     element's vertex lists (under "face": {"indices": (F, L) array or ragged object array}).
     """
-    from plyfile import (PlyData, PlyElementParseError, PlyHeaderParseError,
-                         PlyListProperty)
+    from plyfile import (
+        PlyData,
+        PlyElementParseError,
+        PlyHeaderParseError,
+        PlyListProperty,
+    )
 
     try:
         with _open_ply(path) as stream:
@@ -347,30 +351,41 @@ def ply_kind(header: PlyHeader) -> str:
 
 _KIND_WORDS = {"surfels": "a surfel PLY", "gaussians": "a 3D Gaussian Splatting PLY",
                "mesh": "a triangle mesh", "points": "a point cloud (a PLY without faces)"}
-_KIND_OPTIONS = {"surfels": (), "gaussians": (), "mesh": ("points", "texture"),
-                 "points": ("k", "smooth")}
+_KIND_OPTIONS = {"surfels": ("normalise",), "gaussians": ("normalise",),
+                 "mesh": ("points", "texture", "smooth", "normalise"),
+                 "points": ("k", "smooth", "normalise")}
 
 
 def read_ply(path, *, material: Material | None = None, points: int | str | None = None,
-             k: int | None = None, smooth: bool | None = None, texture=None) -> Surfels:
+             k: int | None = None, smooth: bool | None = None, texture=None,
+             normalise: str | None = None) -> Surfels:
     """Load any PLY file as surfels: the header says what it holds (:func:`ply_kind`).
 
-    * surfels: :func:`read_surfel_ply`, as they are;
+    * surfels: :func:`read_surfel_ply`, as they are (with their stored weights);
     * 3D Gaussian splats: one elliptical surfel per Gaussian (:mod:`dofsplat.io.gaussians`);
     * a triangle mesh (polygons are split into fans): sampled by
       :func:`dofsplat.meshes.mesh_to_surfels`, ``points`` samples (None: the default count;
       "vertices": one per vertex); vertex colours red green blue [alpha] (uchar, ushort:
       sRGB; float: linear); per-vertex texture coordinates (s t, u v or texture_u
       texture_v) with ``texture`` (an image file) or the image a ``comment TextureFile``
-      line names;
+      line names; ``smooth`` (None: True) puts the samples on the Phong tessellation;
     * bare points: normals (nx ny nz) if present, colours as for meshes, then
       :func:`dofsplat.pointcloud.points_to_surfels` with ``k`` neighbours and ``smooth``
       (None: True, points moved onto their neighbourhood's plane).
+
+    normalise: the per-surfel normalisation (:func:`dofsplat.normalise.normalise`): None
+    gives "object" for meshes and points and leaves surfel and 3DGS files as they are; a
+    method given is applied to whatever the file holds ("none": nothing).
 
     ASCII bodies are read by numpy's tokeniser when every face has the same number of
     vertices (plyfile parses ASCII line by line in Python: ten times slower), else and for
     binary bodies by plyfile. Options that do not apply to what the file holds are an error.
     """
+    from ..normalise import check_method
+    from ..normalise import normalise as normalise_surfels
+
+    if normalise is not None:
+        check_method(normalise)
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
@@ -382,13 +397,14 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     if vertex.count == 0:
         raise DofsplatError(f"{path}: the vertex element is empty (0 points)")
     kind = ply_kind(header)
-    given = {"points": points, "k": k, "smooth": smooth, "texture": texture}
+    given = {"points": points, "k": k, "smooth": smooth, "texture": texture,
+             "normalise": normalise}
     wrong = [name for name, v in given.items() if v is not None and name not in _KIND_OPTIONS[kind]]
     if wrong:
         raise DofsplatError(f"{path} is {_KIND_WORDS[kind]}: option(s) {', '.join(wrong)} do "
                             "not apply to it")
     if kind == "surfels":
-        return read_surfel_ply(path, material=material)
+        return normalise_surfels(read_surfel_ply(path, material=material), normalise or "none")
     missing = [n for n in ("x", "y", "z") if n not in vertex.names]
     if missing:
         raise DofsplatError(f"{path}: vertex element lacks {' '.join(missing)}")
@@ -397,11 +413,12 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     if kind == "gaussians":
         from .gaussians import gaussians_to_surfels
 
-        return gaussians_to_surfels(columns, material=material, source=str(path))
+        surfels = gaussians_to_surfels(columns, material=material, source=str(path))
+        return normalise_surfels(surfels, normalise or "none")
     if kind == "mesh":
         return _mesh_surfels(path, header, columns, elements.get("face"), points, texture,
-                             material)
-    return _point_surfels(path, columns, k, smooth, material)
+                             material, smooth is not False, normalise or "object")
+    return _point_surfels(path, columns, k, smooth, material, normalise or "object")
 
 
 def _read_body(path: Path, header: PlyHeader, faces: bool) -> dict:
@@ -484,7 +501,7 @@ def _read_ascii_body(data: bytes, header: PlyHeader, source: str) -> dict | None
     return result
 
 
-def _point_surfels(path: Path, columns: dict, k, smooth, material) -> Surfels:
+def _point_surfels(path: Path, columns: dict, k, smooth, material, normalise) -> Surfels:
     """Bare points (normals optional) to surfels through :mod:`dofsplat.pointcloud`."""
     from ..pointcloud import points_to_surfels
 
@@ -497,7 +514,7 @@ def _point_surfels(path: Path, columns: dict, k, smooth, material) -> Surfels:
     positions, normals, colors, opacity = (None if a is None else a[keep]
                                            for a in (positions, normals, colors, opacity))
     surfels = points_to_surfels(positions, colors, normals, k=k, smooth=smooth is not False,
-                                source=str(path))
+                                normalise=normalise, source=str(path))
     if opacity is not None and len(surfels) == len(opacity):
         surfels = replace(surfels, opacity=opacity)
     return surfels if material is None else replace(surfels, material=material)
@@ -521,7 +538,7 @@ def finite_rows(positions, *others, source: str = "", what="points") -> np.ndarr
 
 
 def _mesh_surfels(path: Path, header: PlyHeader, columns: dict, face: dict | None, count,
-                  texture, material) -> Surfels:
+                  texture, material, smooth, normalise) -> Surfels:
     """A PLY triangle mesh (polygons split into fans) to surfels by sampling."""
     from ..meshes import MeshPart, mesh_to_surfels
     from .mesh import load_texture
@@ -558,7 +575,8 @@ def _mesh_surfels(path: Path, header: PlyHeader, columns: dict, face: dict | Non
     blend = vertex_colors is not None and bool(np.any(vertex_colors[:, 3] < 1.0))
     part = MeshPart(vertices, faces, vertex_colors=vertex_colors, uv=uv, texture=image,
                     alpha_mode="BLEND" if blend else "OPAQUE")
-    return mesh_to_surfels(part, count, material=material, source=str(path))
+    return mesh_to_surfels(part, count, material=material, smooth=smooth,
+                           normalise=normalise, source=str(path))
 
 
 def triangulate(lists, n_vertices: int, source: str = "mesh") -> np.ndarray:
