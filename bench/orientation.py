@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import dofsplat.pointcloud as pc
+from dofsplat.meshes import vertex_normals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from uniformity import DATA, read_ply_points  # noqa: E402
@@ -76,13 +77,8 @@ def mesh_normals(path):
         ply = PlyData.read(f)
     v = ply["vertex"]
     pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
-    faces = np.vstack(ply["face"]["vertex_indices"])
-    face_n = np.cross(pts[faces[:, 1]] - pts[faces[:, 0]], pts[faces[:, 2]] - pts[faces[:, 0]])
-    vert_n = np.zeros_like(pts)
-    for c in range(3):
-        np.add.at(vert_n, faces[:, c], face_n)
-    used = np.linalg.norm(vert_n, axis=1) > 0  # a few vertices belong to no face
-    vert_n[used] /= np.linalg.norm(vert_n[used], axis=1)[:, None]
+    vert_n = vertex_normals(pts, np.vstack(ply["face"]["vertex_indices"]))
+    used = np.linalg.norm(vert_n, axis=1) > 0  # no face, or back-to-back faces
     return pts, vert_n, used
 
 

@@ -67,9 +67,9 @@ OVERSAMPLE = 2  # candidates per sample (Yuksel: 3-5; 3 gains ~3 % uniformity at
 MAX_ELIMINATION = 3_000_000  # above this many samples, stratified samples only (memory)
 RADIUS_NEIGHBOURS = 6  # neighbours whose mean distance sets a sample's radius
 RADIUS_SCALE = 1.3  # disk radius over the radius of the area a surfel stands for (module
-#                     docstring). The middle of a square at 6 px per spacing, normalised,
-#                     read 0.84 / 0.97 / 0.987 / 0.996 of pixels in 1 +- 0.1 with 1.0 / 1.2 /
-#                     1.3 / 1.4 (a development measurement, 2 px band)
+#                     docstring). A square at 6 px per spacing, normalised, reads 0.79 /
+#                     0.95 / 0.98 / 0.99 of pixels in 1 +- 0.1 with 1.0 / 1.2 / 1.3 / 1.4
+#                     (bench/uniformity.py --radius-scale; bench/RESULTS.md)
 _WORKERS = 2  # k-d tree query threads: this is a 2-core machine shared with other work
 
 # R2 sequence (Roberts 2018): the plastic number's powers give the best 2D additive recurrence
@@ -205,6 +205,7 @@ class _Faces:
     normal: np.ndarray  # (F', 3) float64 unit
     vertex_normal: np.ndarray  # (V, 3) float64 unit (or zero for unused vertices)
     crease: np.ndarray  # (V,) bool: a face around the vertex is > CREASE_DEG from its normal
+    undefined: np.ndarray  # (V,) bool: no face, or faces that cancel (vertex_normal: one face's)
 
 
 def _face_geometry(part: MeshPart) -> _Faces:
@@ -212,7 +213,7 @@ def _face_geometry(part: MeshPart) -> _Faces:
     if len(part.faces) == 0:
         z = np.zeros(0)
         return _Faces(np.zeros(0, np.int64), z, np.zeros((0, 3)), np.zeros_like(v),
-                      np.zeros(len(v), bool))
+                      np.zeros(len(v), bool), np.ones(len(v), bool))
     p0, p1, p2 = (v[part.faces[:, i]] for i in range(3))
     with np.errstate(invalid="ignore", over="ignore"):
         cross = np.cross(p1 - p0, p2 - p0)
@@ -242,7 +243,17 @@ def _face_geometry(part: MeshPart) -> _Faces:
         corner = part.faces[index, i]
         np.minimum.at(min_cos, corner, np.sum(vertex_normal[corner] * normal, axis=1))
     crease = min_cos < math.cos(math.radians(CREASE_DEG))
-    return _Faces(index, 0.5 * double_area, normal, vertex_normal, crease)
+    undefined = np.zeros(len(v), bool)
+    undefined[cancelled] = True
+    return _Faces(index, 0.5 * double_area, normal, vertex_normal, crease, undefined)
+
+
+def vertex_normals(vertices, faces) -> np.ndarray:
+    """(V, 3) unit area-weighted vertex normals of a triangle mesh, the normals this module
+    interpolates; zero where they are undefined: a vertex that no face of non-zero area
+    uses, or whose faces cancel (back-to-back faces)."""
+    geo = _face_geometry(MeshPart(vertices, faces))
+    return np.where(geo.undefined[:, None], 0.0, geo.vertex_normal)
 
 
 def _sample_count(count, parts) -> int:

@@ -833,7 +833,7 @@ def test_sampled_plane_close_up_sums_to_1():
     to 1 +- 0.1 almost everywhere with the defaults: disks RADIUS_SCALE wider than the
     area they stand for, then the object-space normalisation. With disks of that area's
     radius (r = h) the same normalisation cannot flatten the dips between blue-noise
-    samples. Measured: 0.99 against 0.84 (bench/RESULTS.md)."""
+    samples. Measured: 0.978 against 0.78 (bench/RESULTS.md has the whole square)."""
     from dofsplat.normalise import uniformity
 
     v, f = square_mesh(4, 1.0)

@@ -337,16 +337,13 @@ def test_dragon_vertices_normals_agree_with_the_mesh():
         pytest.skip(f"shared data not found: {path}")
     from plyfile import PlyData
 
+    from dofsplat.meshes import vertex_normals
+
     ply = PlyData.read(str(path))
     v = ply["vertex"]
     pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
-    faces = np.vstack(ply["face"]["vertex_indices"])
-    face_n = np.cross(pts[faces[:, 1]] - pts[faces[:, 0]], pts[faces[:, 2]] - pts[faces[:, 0]])
-    vert_n = np.zeros_like(pts)
-    for c in range(3):
-        np.add.at(vert_n, faces[:, c], face_n)
-    used = np.linalg.norm(vert_n, axis=1) > 0  # 69 vertices belong to no face
-    vert_n[used] /= np.linalg.norm(vert_n[used], axis=1)[:, None]
+    vert_n = vertex_normals(pts, np.vstack(ply["face"]["vertex_indices"]))
+    used = np.linalg.norm(vert_n, axis=1) > 0  # 69: no face (2) or back-to-back faces
     s = points_to_surfels(pts, progress=False)
     assert len(s) == len(pts)  # no duplicate vertices in this file
     dots = np.sum(s.normals * vert_n, axis=1)[used]
