@@ -20,6 +20,9 @@ from .shading import HEADLIGHT, Light
 from .surfels import Surfels
 
 
+RECONSTRUCTIONS = ("soft", "paper")
+
+
 @dataclass(frozen=True)
 class RenderSettings:
     """How to render; the defaults reproduce the paper's setup (c = 2.5, Phong, headlight)."""
@@ -38,6 +41,8 @@ class RenderSettings:
     lod_blur_fraction: float = 1.0  # LOD: draw a node when its filter is at most this x the DOF blur (variance)
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
+    taper: bool = True  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
+    reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
@@ -57,6 +62,9 @@ class RenderSettings:
             raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
         if not (math.isfinite(self.lod_blur_fraction) and 0 < self.lod_blur_fraction <= 1):
             raise DofsplatError(f"lod_blur_fraction must be in (0, 1], got {self.lod_blur_fraction}")
+        if self.reconstruction not in RECONSTRUCTIONS:
+            raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
+                                f"got {self.reconstruction!r}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
         from .backends import DEVICES
@@ -133,9 +141,12 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
     bands = plan_bands(bbox, visible, camera, settings)
     times["bin_ms"] = _ms(t)
 
-    image, depth, weight, raster_stats = rasterize(splats, bbox, visible, bands, camera, settings)
+    merge = merge_parameters(camera, blur_lens, settings)
+    image, depth, weight, raster_stats = rasterize(splats, bbox, visible, bands, camera, settings,
+                                                   merge)
     times["bin_ms"] += raster_stats.pop("bin_ms")
     times["raster_ms"] = raster_stats.pop("raster_ms")
+    times["front_ms"] = raster_stats.pop("front_ms")
     times["total_ms"] = _ms(t_start)
 
     stats = {
@@ -244,8 +255,13 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
-                   splats, bbox, visible)
+                   kernel_floor(settings), splats, bbox, visible)
     return splats, bbox, visible
+
+
+def kernel_floor(settings: RenderSettings) -> float:
+    """What a tapered (LOD node's) kernel loses everywhere inside its cutoff: e^-c, else 0."""
+    return math.exp(-settings.cutoff) if settings.taper else 0.0
 
 
 def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings) -> list[tuple[int, int]]:
@@ -264,9 +280,30 @@ def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings) -> list[
     return bands
 
 
-def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings):
-    """A-buffer rasterisation and resolve, band by band (Section 6.4)."""
-    from .raster.abuffer import TILE, bin_splats, rasterize_band
+def merge_parameters(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float, float, float]:
+    """(K, 1/P, rho0, rho1) of the soft merge (``abuffer.merge_fraction``); K = 0 turns it off.
+
+    The paper's reconstruction, and a pinhole, composite separate surfaces with "over" only.
+    """
+    from .raster.abuffer import MERGE_RHO0, MERGE_RHO1
+
+    if settings.reconstruction == "paper":
+        return 0.0, 0.0, MERGE_RHO0, MERGE_RHO1
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    return coc_k, inv_focus, MERGE_RHO0, MERGE_RHO1
+
+
+def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings,
+              merge=(0.0, 0.0, 0.25, 0.75)):
+    """A-buffer rasterisation and resolve, band by band (Section 6.4).
+
+    merge: ``merge_parameters``; with K > 0 a front pass first finds, per pixel, the
+    nearest opaque unblurred disk, and every splat hidden behind a front of the same layer
+    (``abuffer.splat_visibility``) gives up that share of its weight (docs/maths.md,
+    "Surface reconstruction"). Changes ``splats`` and ``visible`` in place.
+    """
+    from .raster.abuffer import (TILE, apply_visibility, bin_splats, front_band,
+                                 rasterize_band)
 
     w, h = camera.width, camera.height
     n_tx = -(-w // TILE)
@@ -274,22 +311,36 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     depth = np.empty((h, w), np.float32)
     weight = np.empty((h, w), np.float32)
     background = np.asarray(settings.background, np.float64)
+    coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
     frags = overflows = pairs = 0
-    bin_ms = raster_ms = 0.0
+    bin_ms = raster_ms = front_ms = 0.0
+    binned = {}
+    if coc_k > 0.0:
+        t = time.perf_counter()
+        front = np.full((h * w, 2), np.inf, np.float32)
+        for ty0, ty1 in bands:
+            offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
+            if len(bands) == 1:
+                binned[ty0] = offsets, ids  # one band: bin once for both passes
+            front_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, front)
+        apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
+        front_ms = _ms(t)
     for ty0, ty1 in bands:
         t = time.perf_counter()
-        offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
+        offsets, ids = binned.pop(ty0, None) or bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
         bin_ms += _ms(t)
         t = time.perf_counter()
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
         rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
-                       background, image, depth, weight, tile_stats)
+                       background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
+                       rho1)
         raster_ms += _ms(t)
         frags += int(tile_stats[:, 0].sum())
         overflows += int(tile_stats[:, 1].sum())
         pairs += len(ids)
     stats = {"fragments": frags, "abuffer_overflows": overflows, "tile_pairs": pairs,
-             "bands": len(bands), "bin_ms": bin_ms, "raster_ms": raster_ms}
+             "bands": len(bands), "bin_ms": bin_ms, "raster_ms": raster_ms,
+             "front_ms": front_ms}
     return image, depth, weight, stats
 
 

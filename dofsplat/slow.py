@@ -7,7 +7,9 @@ rather than from the kernels' scalar code:
   (eq. 11, or eq. 12 with ``circumellipse_eig`` for LOD), bounding box and kernel sum over
   the pixel centres;
 * ``rasterize_reference``: one global A-buffer of Python lists, splats in index order, the
-  z-range merge rules of Section 6.4, and front-to-back "over" compositing;
+  z-range merge rules of Section 6.4, and front-to-back "over" compositing; with the soft
+  reconstruction, a front pass over numpy disks, each splat's visibility, and the resolve as
+  an explicit sum over every partition of the surfaces into merged runs;
 * ``circumellipse_appendix``: Appendix A's conic-coefficient algorithm (eqs. 13-14) as printed.
 """
 
@@ -66,17 +68,19 @@ def circumellipse_appendix(A, B, C, r):
 
 def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
                       settings: RenderSettings, lod_cov=None):
-    """numpy twin of ``render.project``: (splats (N, 16), bbox (N, 4), visible (N,)).
+    """numpy twin of ``render.project``: (splats (N, N_FIELDS), bbox (N, 4), visible (N,)).
 
     lod_cov: optional (N, 6) world covariances of an LOD filter V^{q,l} per surfel
     (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
     """
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
-                                EXACT_NORMALISATION_MAX_AREA, GREEN, MX, MY, N_FIELDS, RED,
-                                X0, X1, ZHI, ZLO)
+                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GRAD_Z, GREEN, MX,
+                                MY, N_FIELDS, RED, X0, X1, ZHI, ZLO)
+    from .render import kernel_floor
 
     n = len(surfels)
     c = float(settings.cutoff)
+    taper = kernel_floor(settings)  # an LOD node's kernel is exp(-q) - e^-c inside the cutoff
     src = from_surfels(surfels)
     ru, rv, area = src.ru, src.rv, src.area
     view = camera.camera_from_world()
@@ -129,15 +133,17 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         if cx0 > cx1 or cy0 > cy1:
             continue
         Wi = np.linalg.inv(W)
+        floor = taper if np.trace(Sq) > 0 else 0.0
         area_px = abs(np.linalg.det(J)) * area[k]
         total = 0.0
         if settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
             q = _exponents(m, Wi, x0, x1, y0, y1)
-            total = float(np.exp(-q[q < c]).sum())
+            total = float((np.exp(-q[q < c]) - floor).sum())
         if total > 0:
             amp = area_px / total
         else:
-            amp = area_px / (2 * math.pi * math.sqrt(np.linalg.det(W)) * (1 - math.exp(-c)))
+            mass = 1 - math.exp(-c) - c * floor  # of exp(-q) - floor over q < c, per 2 pi |W|^1/2
+            amp = area_px / (2 * math.pi * math.sqrt(np.linalg.det(W)) * mass)
         reach = math.sqrt(2 * c)
         # depth extent: the leaf basis, plus the node's surfels' spread V^q / 3
         var_z = max((su * tu[k, 2]) ** 2 + (sv * tv[k, 2]) ** 2 + rot[2] @ Sq @ rot[2] / 3, 0.0)
@@ -151,6 +157,12 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         splats[k, ALPHA] = surfels.opacity[k]
         splats[k, COC] = coc_r
         splats[k, [X0, X1]] = x0, x1
+        # the unblurred disk and the depth change per pixel across the tangent plane
+        F = J @ Vr @ J.T + Q + 1e-6 * np.eye(2)
+        Fi = np.linalg.inv(F)
+        splats[k, [F11, F12, F22]] = Fi[0, 0], Fi[0, 1], Fi[1, 1]
+        splats[k, FLOOR] = floor
+        splats[k, GRAD_Z] = float(np.linalg.norm(-np.array([tu[k, 2], tv[k, 2]]) @ np.linalg.inv(J)))
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
     return splats, bbox, visible
@@ -170,21 +182,31 @@ def _exponents(m, Wi, x0, x1, y0, y1):
 
 
 def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
-                        max_surfaces: int = 8):
-    """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments)."""
-    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, RED,
-                                ZHI, ZLO)
+                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5)):
+    """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
+    merge: (K, 1/P, rho0, rho1) of ``render.merge_parameters`` (K = 0: the paper's "over").
+    """
+    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MX, MY,
+                                RED, ZHI, ZLO)
+
+    splats = splats.copy()
+    if merge[0] > 0:
+        front = front_reference(splats, visible, width, height)
+        for k in np.flatnonzero(visible):
+            splats[k, AMP] *= visibility_reference(splats[k], front, merge, width)
     # per pixel: list of surfaces [w, wr, wg, wb, wa, wd, zlo, zhi]
     abuf = [[[] for _ in range(width)] for _ in range(height)]
     fragments = 0
     for k in np.flatnonzero(visible):
         s = splats[k]
+        if s[AMP] <= 0:
+            continue
         Wi = np.array([[s[C11], s[C12]], [s[C12], s[C22]]])
         x0, x1, y0, y1 = bbox[k]
         q = _exponents(s[[MX, MY]], Wi, x0, x1, y0, y1)
         for i, j in zip(*np.nonzero(q < cutoff)):
-            w = s[AMP] * math.exp(-q[i, j])
+            w = s[AMP] * (math.exp(-q[i, j]) - s[FLOOR])
             frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
                     s[ZLO], s[ZHI]]
             _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
@@ -194,8 +216,64 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
     weight = np.zeros((height, width))
     for i in range(height):
         for j in range(width):
-            image[i, j], depth[i, j], weight[i, j] = _resolve(abuf[i][j], background)
+            image[i, j], depth[i, j], weight[i, j] = _resolve(abuf[i][j], background, merge)
     return image, depth, weight, fragments
+
+
+def merge_fraction_reference(d_front, d_back, opacity_front, merge):
+    """The merge fraction of two surfaces (abuffer.merge_fraction), from its definition."""
+    from .raster.abuffer import OPAQUE
+
+    coc_k, inv_focus, rho0, rho1 = merge
+    if coc_k <= 0:
+        return 0.0
+    blur = max(coc_k * abs(1 / d - inv_focus) for d in (d_front, d_back))
+    if blur <= 0:
+        return 0.0
+    rho = (coc_k * abs(1 / d_front - 1 / d_back) + 1) / blur
+    t = float(np.clip((rho - rho0) / (rho1 - rho0), 0, 1))
+    opaque = float(np.clip((opacity_front - OPAQUE + 0.05) / 0.05, 0, 1))
+    return (1 - (3 * t * t - 2 * t ** 3)) * opaque
+
+
+def front_reference(splats, visible, width, height):
+    """(H * W, 2): per pixel the least depth and z_hi of the opaque unblurred disks on it."""
+    from .raster.abuffer import FRONT_CUTOFF, OPAQUE
+    from .splat.project import ALPHA, DEPTH, F11, F12, F22, MX, MY, ZHI
+
+    front = np.full((height, width, 2), np.inf)
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    for k in np.flatnonzero(visible):
+        s = splats[k]
+        if s[ALPHA] < OPAQUE:
+            continue
+        Fi = np.array([[s[F11], s[F12]], [s[F12], s[F22]]])
+        d = np.stack([xs - s[MX], ys - s[MY]], axis=-1)
+        inside = 0.5 * np.einsum("...i,ij,...j->...", d, Fi, d) < FRONT_CUTOFF
+        front[..., 0] = np.where(inside, np.minimum(front[..., 0], s[DEPTH]), front[..., 0])
+        front[..., 1] = np.where(inside, np.minimum(front[..., 1], s[ZHI]), front[..., 1])
+    return front.reshape(-1, 2)
+
+
+def visibility_reference(s, front, merge, width):
+    """A splat's visibility (abuffer.splat_visibility): 9 points of its unblurred disk."""
+    from .raster.abuffer import VIS_SAMPLES
+    from .splat.project import DEPTH, F11, F12, F22, GRAD_Z, MX, MY, ZLO
+
+    height = front.shape[0] // width
+    F = np.linalg.inv(np.array([[s[F11], s[F12]], [s[F12], s[F22]]]))
+    L = np.linalg.cholesky(F)
+    angles = np.arange(VIS_SAMPLES - 1) * 2 * math.pi / (VIS_SAMPLES - 1)
+    points = [np.zeros(2)] + [L @ np.array([math.cos(a), math.sin(a)]) for a in angles]
+    removed = 0.0
+    for o in points:
+        j, i = math.floor(s[MX] + o[0]), math.floor(s[MY] + o[1])
+        if not (0 <= j < width and 0 <= i < height):
+            continue
+        f_depth, f_zhi = front[i * width + j]
+        if s[ZLO] - 0.75 * s[GRAD_Z] > f_zhi:
+            removed += merge_fraction_reference(f_depth, s[DEPTH], 1.0, merge)
+    return 1 - removed / VIS_SAMPLES
 
 
 def _overlaps(a, b):
@@ -233,33 +311,63 @@ def _insert(surfaces, frag, max_surfaces):
         j += 1
 
 
-def _resolve(surfaces, background):
+def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
+    """One pixel: the expectation over every partition of the depth-sorted surfaces into runs
+    (run i..j merged with probability m_i ... m_(j-1) (1 - m_j)) of "over" of the runs."""
+    import itertools
+
     def mean_depth(s):
         return s[5] / s[0] if s[0] > 0 else 0.5 * (s[6] + s[7])
 
     order = sorted(range(len(surfaces)), key=lambda i: (mean_depth(surfaces[i]), i))
-    trans, rgb = 1.0, np.zeros(3)
-    best, best_depth = 0.0, np.inf
-    for i in order:
-        s = surfaces[i]
+    ss = [surfaces[i] for i in order]
+    n = len(ss)
+    m = [merge_fraction_reference(mean_depth(ss[t]), mean_depth(ss[t + 1]),
+                                  ss[t][4] / ss[t][0] if ss[t][0] > 0 else 0.0, merge)
+         for t in range(n - 1)]
+    rgb, trans = np.zeros(3), 0.0
+    for cuts in itertools.product((False, True), repeat=max(n - 1, 0)):
+        # cuts[t]: a run ends after surface t
+        prob = math.prod((1 - m[t]) if cut else m[t] for t, cut in enumerate(cuts))
+        if prob == 0:
+            continue
+        runs, start = [], 0
+        for t in range(n):
+            if t == n - 1 or cuts[t]:
+                runs.append(np.sum([ss[u][:6] for u in range(start, t + 1)], axis=0))
+                start = t + 1
+        c, tr = np.zeros(3), 1.0
+        for run in runs:
+            if run[0] <= 0:
+                continue
+            alpha = min(1.0, run[0]) * run[4] / run[0]
+            c += tr * alpha * run[1:4] / run[0]
+            tr *= 1 - alpha
+        rgb += prob * c
+        trans += prob * tr
+    if n == 0:
+        trans = 1.0
+    # the depth of the surface that contributes most, by "over" of the separate surfaces
+    tr, best, best_depth = 1.0, 0.0, np.inf
+    for s in ss:
         if s[0] <= 0:
             continue
         alpha = min(1.0, s[0]) * s[4] / s[0]
-        rgb += trans * alpha * np.array(s[1:4]) / s[0]
-        if trans * alpha > best:
-            best, best_depth = trans * alpha, mean_depth(s)
-        trans *= 1 - alpha
+        if tr * alpha > best:
+            best, best_depth = tr * alpha, mean_depth(s)
+        tr *= 1 - alpha
     rgb += trans * np.asarray(background)
-    nearest = surfaces[order[0]][0] if order else 0.0
+    nearest = ss[0][0] if ss else 0.0
     return np.array([*rgb, 1 - trans]), best_depth, nearest
 
 
 def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None):
     """The whole pipeline from the twins (shading is shared: it is numpy already)."""
-    from .render import shade_surfels
+    from .render import merge_parameters, shade_surfels
 
     settings = settings or RenderSettings()
     rgb = shade_surfels(surfels, camera, settings)
     splats, bbox, visible = project_reference(surfels, rgb, camera, lens, settings)
     return rasterize_reference(splats, bbox, visible, camera.width, camera.height,
-                               settings.cutoff, settings.background)
+                               settings.cutoff, settings.background,
+                               merge=merge_parameters(camera, lens, settings))

@@ -48,9 +48,11 @@ import numpy as np
 from numba import cuda
 
 from ..lod.select import DESCEND, SELECT, gather_splat, visit_node
-from ..raster.abuffer import MAX_SURFACES, N_ACC, TILE, insert_fragment, resolve_to_image
+from ..raster.abuffer import (MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE, front_fragments,
+                              insert_fragment, resolve_to_image, splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, N_FIELDS,
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MX, MY,
+                             N_FIELDS,
                              RED, X0, X1, ZHI, ZLO, project_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
@@ -91,6 +93,8 @@ _visit_node = device_twin(visit_node)
 _gather_splat = device_twin(gather_splat)
 _insert_fragment = device_twin(insert_fragment)
 _resolve_to_image = device_twin(resolve_to_image)
+_front_fragments = device_twin(front_fragments)
+_splat_visibility = device_twin(splat_visibility)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
 
@@ -220,12 +224,34 @@ def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shini
 @cuda.jit
 def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
              by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
-             exact_norm, analytic, out, bbox, visible):
+             exact_norm, floor, out, bbox, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
         _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                        ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                       cull_backfaces, exact_norm, analytic, out, bbox, visible)
+                       cull_backfaces, exact_norm, floor, out, bbox, visible)
+
+
+@cuda.jit
+def _front(splats, offsets, ids, n_tx, width, height, opaque, front):
+    """The front pass (raster/abuffer.py's front_band): one thread per tile, serial inside."""
+    t = cuda.grid(1)
+    if t < offsets.shape[0] - 1:
+        px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
+        px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
+        for e in range(offsets[t], offsets[t + 1]):
+            k = ids[e]
+            if splats[k, ALPHA] >= opaque:
+                _front_fragments(splats, k, px0, px1, py0, py1, front, width)
+
+
+@cuda.jit
+def _visibility(splats, visible, front, width, height, coc_k, inv_focus, rho0, rho1):
+    """Each splat's share that survives the front pass (abuffer.apply_visibility)."""
+    k = cuda.grid(1)
+    if k < splats.shape[0] and visible[k]:
+        splats[k, AMP] *= _splat_visibility(splats, k, front, width, height, coc_k, inv_focus,
+                                            rho0, rho1)
 
 
 @cuda.jit
@@ -311,7 +337,7 @@ def _sort_tiles(offsets, ids):
 
 @cuda.jit
 def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg_g, bg_b,
-               image, depth, weight, tile_stats):
+               image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1):
     """One block per tile, one thread per pixel: A-buffer insert of the tile's fragments in
     splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
     batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float64)
@@ -342,7 +368,7 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
-                if rows[s, 0] <= i <= rows[s, 1]:
+                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0:
                     mx, my = batch[s, MX], batch[s, MY]
                     c11, c12, c22 = batch[s, C11], batch[s, C12], batch[s, C22]
                     j0, j1 = _row_pixel_range(i, mx, my, c11, c12, c22, cutoff,
@@ -351,7 +377,7 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
                         q = _exponent(j + 0.5 - mx, i + 0.5 - my, c11, c12, c22)
                         if q < cutoff:
                             overflows += _insert_fragment(
-                                acc, cnt, 0, batch[s, AMP] * math.exp(-q), batch[s, RED],
+                                acc, cnt, 0, batch[s, AMP] * (math.exp(-q) - batch[s, FLOOR]), batch[s, RED],
                                 batch[s, GREEN], batch[s, BLUE], batch[s, ALPHA], batch[s, DEPTH],
                                 batch[s, ZLO], batch[s, ZHI])
                             frags += 1
@@ -359,9 +385,9 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
     if inside:
         res = cuda.local.array(7, numba.float64)
         order = cuda.local.array(MAX_SURFACES, numba.int64)
-        scratch = cuda.local.array(MAX_SURFACES, numba.float64)
+        scratch = cuda.local.array(RESOLVE_SCRATCH, numba.float64)
         _resolve_to_image(acc, cnt, 0, bg_r, bg_g, bg_b, res, order, scratch, image, depth,
-                          weight, i, j)
+                          weight, i, j, coc_k, inv_focus, rho0, rho1)
     cuda.atomic.add(counters, 0, frags)
     cuda.atomic.add(counters, 1, overflows)
     cuda.syncthreads()
@@ -560,7 +586,7 @@ def shade_cuda(source: SplatSource, camera, settings):
 
 def project_cuda(source: SplatSource, rgb, camera, lens, settings):
     """EWA projection with the DOF blur on the GPU: splats, bbox, visible (render.project's twin)."""
-    from ..render import coc_coefficients
+    from ..render import coc_coefficients, kernel_floor
 
     n = source.size
     splats = _WS.get("splats", (n, N_FIELDS), np.float64)
@@ -571,13 +597,13 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings):
         ax, bx, ay, by = camera.screen_coefficients()
         view_t = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
         cutoff = float(settings.cutoff)
-        analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
+        floor = kernel_floor(settings)
         _project[_blocks(n), THREADS](
             source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
             rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
             float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
             float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
-            bool(settings.exact_normalization), analytic, splats, bbox, visible)
+            bool(settings.exact_normalization), floor, splats, bbox, visible)
     return splats, bbox, visible
 
 
@@ -612,9 +638,24 @@ def bin_cuda(bbox, visible, camera):
     return offsets, ids, _scalar(n_visible)
 
 
-def rasterize_cuda(splats, bbox, offsets, ids, camera, settings):
-    """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats."""
+def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge):
+    """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats.
+
+    merge: ``render.merge_parameters``; with K > 0 the front pass and the splats'
+    visibility come first, as in ``render.rasterize``.
+    """
+    from ..raster.abuffer import OPAQUE
+
     w, h = camera.width, camera.height
+    coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
+    n_tx0 = -(-w // TILE)
+    if coc_k > 0.0 and splats.shape[0]:
+        front = _WS.get("front", (h * w, 2), np.float32)
+        front.copy_to_device(np.full((h * w, 2), np.inf, np.float32))
+        n_tiles = offsets.shape[0] - 1
+        _front[_blocks(n_tiles), THREADS](splats, offsets, ids, n_tx0, w, h, OPAQUE, front)
+        _visibility[_blocks(splats.shape[0]), THREADS](splats, visible, front, w, h, coc_k,
+                                                       inv_focus, rho0, rho1)
     n_tx, n_ty = -(-w // TILE), -(-h // TILE)
     image = _WS.get("image", (h, w, 4), np.float32)
     depth = _WS.get("depth", (h, w), np.float32)
@@ -622,7 +663,8 @@ def rasterize_cuda(splats, bbox, offsets, ids, camera, settings):
     tile_stats = _WS.get("tile_stats", (n_tx * n_ty, 2), np.int64)
     bg = [float(c) for c in settings.background]
     _rasterize[n_tx * n_ty, PIXELS](splats, bbox, offsets, ids, n_tx, w, h, float(settings.cutoff),
-                                    bg[0], bg[1], bg[2], image, depth, weight, tile_stats)
+                                    bg[0], bg[1], bg[2], image, depth, weight, tile_stats,
+                                    coc_k, inv_focus, rho0, rho1)
     return image, depth, weight, tile_stats
 
 
@@ -670,7 +712,7 @@ class _Clock:
 
 def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame:
     """``render``'s pipeline on the GPU, the result left there (for timings and viewers)."""
-    from ..render import lod_tree
+    from ..render import lod_tree, merge_parameters
 
     tree = lod_tree(surfels, hierarchy) if settings.lod else None
     scene = device_scene(surfels, tree)
@@ -685,7 +727,9 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
     clock.mark("project_ms")
     offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
     clock.mark("bin_ms")
-    image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, offsets, ids, camera, settings)
+    merge = merge_parameters(camera, blur_lens, settings)
+    image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, visible, offsets, ids, camera,
+                                                      settings, merge)
     clock.mark("raster_ms")
     frags, overflows = tile_stats.copy_to_host().sum(axis=0)
     stats = {

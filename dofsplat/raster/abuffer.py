@@ -22,15 +22,28 @@ import math
 import numba
 import numpy as np
 
-from ..splat.ewa import row_pixel_range, row_start
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, GREEN, MX, MY, RED, X0,
-                             X1, ZHI, ZLO)
+from ..splat.ewa import exponent, row_pixel_range, row_start
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
+                             GRAD_Z, GREEN, MX, MY, RED, X0, X1, ZHI, ZLO)
 
 TILE = 16
 MAX_SURFACES = 8
 # per-surface accumulators in the tile A-buffer
 S_W, S_WR, S_WG, S_WB, S_WA, S_WD, S_ZLO, S_ZHI = range(8)
 N_ACC = 8
+# scratch floats that resolve_pixel needs: sort keys, merge fractions, the composite table
+RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
+
+# The front pass: splats at least this opaque hide what lies behind them, over their
+# unblurred disk (1/2 x^T F^-1 x < FRONT_CUTOFF: the disk radius is the basis's 2 sigma)
+OPAQUE = 0.95
+FRONT_CUTOFF = 2.0
+# the merge band: two surfaces whose parallax ratio rho = (Delta + 1 px) / max(C_r) is below
+# MERGE_RHO0 merge, above MERGE_RHO1 stay separate, smoothly in between (docs/maths.md)
+MERGE_RHO0 = 0.15
+MERGE_RHO1 = 0.5
+# the sample points of a splat's visibility: its centre and 8 points on its 1-sigma ellipse
+VIS_SAMPLES = 9
 
 
 @numba.njit(cache=True, nogil=True)
@@ -145,11 +158,128 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     return overflow
 
 
+@numba.njit(cache=True, nogil=True)
+def merge_fraction(d_front, d_back, opacity_front, coc_k, inv_focus, rho0, rho1):
+    """How much two blurred surfaces at depths d_front < d_back are one layer, in [0, 1].
+
+    Through the lens the two shift against each other by their parallax
+    Delta = K |1/d_front - 1/d_back| pixels at most, against blurs of C_r = K |1/d - 1/P|.
+    When Delta is small against the blur, every lens sample sees them as the pinhole does
+    (what hides what does not change): their blurred fragments add (merge, 1). When it is
+    not, the front one's blur reveals what it hides, and "over" is right (0). The ratio
+    rho = (Delta + 1) / max(C_r) chooses, smoothly between rho0 and rho1; the 1 px keeps
+    sharp surfaces (C_r under a pixel, a pinhole) separate, as the paper's A-buffer does.
+    A translucent front is composited over what is behind it at any parallax.
+    """
+    if coc_k <= 0.0 or d_front <= 0.0 or d_back <= 0.0:
+        return 0.0
+    c = coc_k * max(abs(1.0 / d_front - inv_focus), abs(1.0 / d_back - inv_focus))
+    if c <= 0.0:
+        return 0.0
+    rho = (coc_k * abs(1.0 / d_front - 1.0 / d_back) + 1.0) / c
+    t = min(max((rho - rho0) / (rho1 - rho0), 0.0), 1.0)
+    o = min(max((opacity_front - (OPAQUE - 0.05)) / 0.05, 0.0), 1.0)
+    return (1.0 - t * t * (3.0 - 2.0 * t)) * o
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def front_fragments(splats, k, px0, px1, py0, py1, front, width):
+    """Splat k's unblurred disk into the front buffer of pixels px0..px1 x py0..py1.
+
+    front: (H * W, 2) float32, per pixel the smallest depth and the smallest z_hi of the
+    opaque disks covering it. Returns the number of pixels visited.
+    """
+    mx, my = splats[k, MX], splats[k, MY]
+    f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
+    det = f11 * f22 - f12 * f12
+    hx = math.sqrt(2.0 * FRONT_CUTOFF * f22 / det)  # F = inverse of the conic
+    hy = math.sqrt(2.0 * FRONT_CUTOFF * f11 / det)
+    x0 = max(int(math.floor(mx - hx - 0.5)), px0)
+    x1 = min(int(math.ceil(mx + hx - 0.5)), px1)
+    y0 = max(int(math.floor(my - hy - 0.5)), py0)
+    y1 = min(int(math.ceil(my + hy - 0.5)), py1)
+    d, zhi = splats[k, DEPTH], splats[k, ZHI]
+    for i in range(y0, y1 + 1):
+        for j in range(x0, x1 + 1):
+            if exponent(j + 0.5 - mx, i + 0.5 - my, f11, f12, f22) < FRONT_CUTOFF:
+                p = i * width + j
+                if d < front[p, 0]:
+                    front[p, 0] = d
+                if zhi < front[p, 1]:
+                    front[p, 1] = zhi
+    return max(x1 - x0 + 1, 0) * max(y1 - y0 + 1, 0)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def front_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, front):
+    """The front pass over one band's tiles: opaque unblurred disks into ``front``."""
+    n_tiles = offsets.shape[0] - 1
+    for t in numba.prange(n_tiles):
+        ty = ty0 + t // n_tx
+        tx = t % n_tx
+        px0, py0 = tx * TILE, ty * TILE
+        px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
+        for e in range(offsets[t], offsets[t + 1]):
+            k = ids[e]
+            if splats[k, ALPHA] >= OPAQUE:
+                front_fragments(splats, k, px0, px1, py0, py1, front, width)
+
+
+@numba.njit(cache=True, nogil=True)
+def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1):
+    """The share of splat k that survives the front pass, in [0, 1] (docs/maths.md).
+
+    At each of VIS_SAMPLES points of its unblurred disk (the centre, 8 points on the
+    1-sigma ellipse), a splat is hidden if its z-range, widened by its depth change over
+    the 0.75 px to the pixel centre, begins behind the z-range of the front there; hidden by a front of merge fraction m (same layer through the lens), its
+    blur would add to the front's where every lens sample sees the front: it is removed
+    by m. Hidden by a front far from it in parallax, it stays, and the A-buffer lets the
+    front's blurred rim show it (partial occlusion).
+    """
+    mx, my = splats[k, MX], splats[k, MY]
+    f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
+    det = f11 * f22 - f12 * f12
+    # F (the variance) = L L^T: x = L u for u on the unit circle is the 1-sigma ellipse
+    v11, v12, v22 = f22 / det, -f12 / det, f11 / det
+    l11 = math.sqrt(v11)
+    l21 = v12 / l11
+    l22 = math.sqrt(max(v22 - l21 * l21, 0.0))
+    # the front is sampled at pixel centres up to ~0.7 px from the sample point: allow the
+    # splat's own surface to move that much in depth
+    zlo, depth = splats[k, ZLO] - 0.75 * splats[k, GRAD_Z], splats[k, DEPTH]
+    removed = 0.0
+    for s in range(VIS_SAMPLES):
+        dx = dy = 0.0
+        if s > 0:
+            a = (s - 1) * (2.0 * math.pi / (VIS_SAMPLES - 1))
+            ux, uy = math.cos(a), math.sin(a)
+            dx, dy = l11 * ux, l21 * ux + l22 * uy
+        j = int(math.floor(mx + dx))
+        i = int(math.floor(my + dy))
+        if j < 0 or i < 0 or j >= width or i >= height:
+            continue
+        p = i * width + j
+        if zlo > front[p, 1]:
+            removed += merge_fraction(front[p, 0], depth, 1.0, coc_k, inv_focus, rho0, rho1)
+    return 1.0 - removed / VIS_SAMPLES
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def apply_visibility(splats, visible, front, width, height, coc_k, inv_focus, rho0, rho1):
+    """Scale every visible splat's amplitude by its ``splat_visibility`` (0: the rasteriser
+    skips it)."""
+    for k in numba.prange(splats.shape[0]):
+        if visible[k]:
+            v = splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1)
+            splats[k, AMP] *= v
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch, image, depth, weight,
-                     i, j):
+                     i, j, coc_k, inv_focus, rho0, rho1):
     """Resolve pixel p's surfaces (``resolve_pixel``) into image pixel (i, j) and its buffers."""
-    resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch)
+    resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch, coc_k, inv_focus, rho0,
+                  rho1)
     image[i, j, 0] = res[0]
     image[i, j, 1] = res[1]
     image[i, j, 2] = res[2]
@@ -159,25 +289,78 @@ def resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch, image, 
 
 
 @numba.njit(cache=True, nogil=True)
-def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, depth):
+def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv_focus, rho0,
+                  rho1):
     """Composite pixel p's surfaces front to back over the background.
+
+    Neighbouring surfaces (in depth) are one layer by their ``merge_fraction`` m: the
+    pixel is the expectation, over the partitions of the sorted surfaces into runs, of
+    "over" of the merged runs, where a run i..j has probability
+    m_i ... m_(j-1) (1 - m_j). With every m = 0 this is the paper's "over" of the
+    surfaces; a run's weights, colours and opacities add as a merge does. Computed from
+    the back in O(n^2): F(i) = sum_j P_ij (C_ij + (1 - alpha_ij) F(j + 1)).
 
     out: (7,) receives r, g, b, alpha, depth of the surface that contributes most
     (inf if none), accumulated weight of the nearest surface, number of surfaces;
-    order, depth: (MAX_SURFACES,) scratch space.
+    order: (MAX_SURFACES,) int scratch; scratch: (RESOLVE_SCRATCH,) float scratch.
     """
     n = cnt[p]
+    ns = MAX_SURFACES
     for i in range(n):  # insertion sort by mean depth, ties by slot
         d = acc[p, i, S_WD] / acc[p, i, S_W] if acc[p, i, S_W] > 0 else 0.5 * (acc[p, i, S_ZLO] + acc[p, i, S_ZHI])
         m = i
-        while m > 0 and depth[m - 1] > d:
-            depth[m] = depth[m - 1]
+        while m > 0 and scratch[m - 1] > d:
+            scratch[m] = scratch[m - 1]
             order[m] = order[m - 1]
             m -= 1
-        depth[m] = d
+        scratch[m] = d
         order[m] = i
+    # merge fractions of neighbours m and m + 1, at scratch[ns + m]
+    for m in range(n - 1):
+        i = order[m]
+        w = acc[p, i, S_W]
+        opacity = acc[p, i, S_WA] / w if w > 0.0 else 0.0
+        scratch[ns + m] = merge_fraction(scratch[m], scratch[m + 1], opacity, coc_k, inv_focus,
+                                         rho0, rho1)
+    # the composite table F(m) = (r, g, b, transmittance) at scratch[2 ns + 4 m ...]
+    f0 = 2 * ns
+    scratch[f0 + 4 * n] = 0.0
+    scratch[f0 + 4 * n + 1] = 0.0
+    scratch[f0 + 4 * n + 2] = 0.0
+    scratch[f0 + 4 * n + 3] = 1.0
+    for a in range(n - 1, -1, -1):
+        prob = 1.0
+        sw = sr = sg = sb = sa = 0.0
+        fr = fg = fb = ft = 0.0
+        for b in range(a, n):
+            i = order[b]
+            sw += acc[p, i, S_W]
+            sr += acc[p, i, S_WR]
+            sg += acc[p, i, S_WG]
+            sb += acc[p, i, S_WB]
+            sa += acc[p, i, S_WA]
+            end = prob * (1.0 - scratch[ns + b]) if b < n - 1 else prob
+            if end > 0.0:
+                alpha = 0.0
+                cr = cg = cb = 0.0
+                if sw > 0.0:
+                    alpha = min(1.0, sw) * sa / sw
+                    cr, cg, cb = alpha * sr / sw, alpha * sg / sw, alpha * sb / sw
+                nxt = f0 + 4 * (b + 1)
+                fr += end * (cr + (1.0 - alpha) * scratch[nxt])
+                fg += end * (cg + (1.0 - alpha) * scratch[nxt + 1])
+                fb += end * (cb + (1.0 - alpha) * scratch[nxt + 2])
+                ft += end * (1.0 - alpha) * scratch[nxt + 3]
+            if b < n - 1:
+                prob *= scratch[ns + b]
+                if prob <= 0.0:
+                    break
+        scratch[f0 + 4 * a] = fr
+        scratch[f0 + 4 * a + 1] = fg
+        scratch[f0 + 4 * a + 2] = fb
+        scratch[f0 + 4 * a + 3] = ft
+    # the surface that contributes most, by "over" of the separate surfaces
     trans = 1.0
-    cr = cg = cb = 0.0
     best = 0.0
     best_depth = np.inf
     for m in range(n):
@@ -186,17 +369,14 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, depth):
         if w <= 0.0:
             continue
         alpha = min(1.0, w) * acc[p, i, S_WA] / w
-        contrib = trans * alpha
-        cr += contrib * acc[p, i, S_WR] / w
-        cg += contrib * acc[p, i, S_WG] / w
-        cb += contrib * acc[p, i, S_WB] / w
-        if contrib > best:
-            best = contrib
-            best_depth = depth[m]
+        if trans * alpha > best:
+            best = trans * alpha
+            best_depth = scratch[m]
         trans *= 1.0 - alpha
-    out[0] = cr + trans * bg_r
-    out[1] = cg + trans * bg_g
-    out[2] = cb + trans * bg_b
+    trans = scratch[f0 + 3]
+    out[0] = scratch[f0] + trans * bg_r
+    out[1] = scratch[f0 + 1] + trans * bg_g
+    out[2] = scratch[f0 + 2] + trans * bg_b
     out[3] = 1.0 - trans
     out[4] = best_depth
     out[5] = acc[p, order[0], S_W] if n > 0 else 0.0
@@ -205,7 +385,7 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, depth):
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
-                   background, image, depth, weight, tile_stats):
+                   background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1):
     """Rasterise and resolve the tiles of one band (tile rows ty0..) into the output images.
 
     image: (H, W, 4) float32; depth, weight: (H, W) float32; tile_stats: (n_tiles, 2) int64
@@ -224,11 +404,14 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         overflows = 0
         for e in range(offsets[t], offsets[t + 1]):
             k = ids[e]
+            amp = splats[k, AMP]
+            if amp <= 0.0:
+                continue  # hidden by the front pass
             mx, my = splats[k, MX], splats[k, MY]
             c11, c12, c22 = splats[k, C11], splats[k, C12], splats[k, C22]
-            amp = splats[k, AMP]
             r, g, b, a = splats[k, RED], splats[k, GREEN], splats[k, BLUE], splats[k, ALPHA]
             d, zlo, zhi = splats[k, DEPTH], splats[k, ZLO], splats[k, ZHI]
+            floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
             step2 = math.exp(-c11)
             for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
@@ -241,7 +424,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 p = (i - py0) * TILE + (ja - px0)
                 for _ in range(ja, jb + 1):
                     if q < cutoff:
-                        overflows += insert_fragment(acc, cnt, p, amp * e, r, g, b, a, d, zlo, zhi)
+                        overflows += insert_fragment(acc, cnt, p, amp * (e - floor), r, g, b, a, d, zlo,
+                                                     zhi)
                         frags += 1
                     q += dq
                     dq += c11
@@ -250,11 +434,11 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     p += 1
         res = np.empty(7, np.float64)
         order = np.empty(MAX_SURFACES, np.int64)
-        depth_scratch = np.empty(MAX_SURFACES, np.float64)
+        scratch = np.empty(RESOLVE_SCRATCH, np.float64)
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)
-                resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, depth_scratch,
-                                 image, depth, weight, i, j)
+                resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch,
+                                 image, depth, weight, i, j, coc_k, inv_focus, rho0, rho1)
         tile_stats[t, 0] = frags
         tile_stats[t, 1] = overflows

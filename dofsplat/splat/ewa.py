@@ -223,20 +223,24 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     camera_from_world matrix; lod_cov: 6-tuple (xx, xy, xz, yy, yz, zz), the world
     covariance of the LOD filter V^{q,l} (zeros for a surfel).
 
-    Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r): ok is False for
-    a culled surfel (behind the near plane, or a back face when culling is on).
+    Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r, f11, f12, f22,
+    grad_z): ok
+    is False for a culled surfel (behind the near plane, or a back face when culling is on);
+    F = (f11, f12, f22) is the unblurred disk J V^r J^T + J V^{q,l} J^T, the splat as a
+    pinhole sees it, without the prefilter; grad_z the depth change per pixel across the
+    tangent plane (the front pass of the A-buffer, raster/abuffer.py).
     """
     px = view[0] * p_world[0] + view[1] * p_world[1] + view[2] * p_world[2] + view[3]
     py = view[4] * p_world[0] + view[5] * p_world[1] + view[6] * p_world[2] + view[7]
     pz = view[8] * p_world[0] + view[9] * p_world[1] + view[10] * p_world[2] + view[11]
     depth = -pz
     if depth <= near:
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0
     nx = view[0] * n_world[0] + view[1] * n_world[1] + view[2] * n_world[2]
     ny = view[4] * n_world[0] + view[5] * n_world[1] + view[6] * n_world[2]
     nz = view[8] * n_world[0] + view[9] * n_world[1] + view[10] * n_world[2]
     if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:  # normal points away from the eye
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0
     if t_world[0] == 0.0 and t_world[1] == 0.0 and t_world[2] == 0.0:
         tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
     else:
@@ -259,6 +263,10 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     coc_r = coc_radius_px(depth, coc_k, inv_focus)
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
     w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, dof_variance(coc_r))
+    # the unblurred disk (what a pinhole sees, without the prefilter: a far sub-pixel disk
+    # must not claim pixels beyond its own surface): the basis and a node's own filter
+    f11, f12, f22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
+    f11, f12, f22 = f11 - 1.0 + q11 + 1e-6, f12 + q12, f22 - 1.0 + q22 + 1e-6
 
     # z-range in camera space, not enlarged by the blur (Section 6.4): the truncated leaf
     # basis reaches sqrt(2c) sigma in depth; a node adds the depth spread of its surfels
@@ -270,7 +278,15 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     var_z = max((su * tuz) ** 2 + (sv * tvz) ** 2 + q_depth / 3.0, 0.0)
     sigma_l = math.sqrt(max(su, sv) ** 2 + 0.5 * (lod_cov[0] + lod_cov[3] + lod_cov[5]))
     half = reach * math.sqrt(var_z) + z_margin * 2.0 * sigma_l
-    return True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r
+    # depth change per pixel along the tangent plane: (dU/du, dU/dv) J^-1 with U = -Z
+    det_s = j11 * j22 - j12 * j21
+    grad_z = 1e30
+    if det_s != 0.0:
+        gx = (-tuz * j22 + tvz * j21) / det_s
+        gy = (tuz * j12 - tvz * j11) / det_s
+        grad_z = math.sqrt(gx * gx + gy * gy)
+    return (True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r,
+            f11, f12, f22, grad_z)
 
 
 # -- pixel footprint of a truncated kernel ----------------------------------------------
@@ -328,8 +344,9 @@ def row_start(j, i, mx, my, c11, c12, c22):
 
 
 @shared
-def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1):
-    """Sum of exp(-exponent) over all pixel centres inside the truncated kernel (unclipped)."""
+def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
+    """Sum of exp(-exponent) - floor over all pixel centres inside the truncated kernel
+    (unclipped); floor = e^-c tapers the kernel to 0 at its cutoff, 0 keeps the paper's step."""
     total = 0.0
     step2 = math.exp(-c11)
     for i in range(y0, y1 + 1):
@@ -339,7 +356,7 @@ def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1):
         q, dq, e, f = row_start(j0, i, mx, my, c11, c12, c22)
         for _ in range(j0, j1 + 1):
             if q < cutoff:
-                total += e
+                total += e - floor
             q += dq
             dq += c11
             e *= f

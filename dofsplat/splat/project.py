@@ -2,7 +2,8 @@
 
 Output, one row per surfel in a float64 (N, N_FIELDS) array (columns ``SPLAT_FIELDS``):
 screen mean, conic (inverse variance), amplitude, z-range, depth, shaded colour, opacity,
-CoC radius; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1, inclusive) clipped to the
+CoC radius, unclipped bbox columns, and the unblurred footprint's conic (the splat as a
+pinhole sees it, for the A-buffer's front pass) and its depth change per pixel; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1, inclusive) clipped to the
 image; and a visibility flag. A splat's fragment weight at pixel centre x is
 
     amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
@@ -19,10 +20,12 @@ import numpy as np
 
 from .ewa import kernel_bbox, kernel_pixel_sum, project_surfel
 
-MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC, X0, X1 = range(16)
-N_FIELDS = 16
+(MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC, X0, X1,
+ F11, F12, F22, GRAD_Z, FLOOR) = range(21)
+N_FIELDS = 21
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
-                "red", "green", "blue", "alpha", "coc_radius_px", "x0", "x1")
+                "red", "green", "blue", "alpha", "coc_radius_px", "x0", "x1",
+                "f11", "f12", "f22", "grad_z", "floor")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -34,7 +37,7 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 @numba.njit(cache=True, nogil=True, parallel=True)
 def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
                    ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-                   z_margin, cull_backfaces, exact_norm, out, bbox, visible):
+                   z_margin, cull_backfaces, exact_norm, floor, out, bbox, visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
 
     positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
@@ -46,20 +49,19 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     n = positions.shape[0]
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
-    analytic = 1.0 / (2.0 * math.pi * (1.0 - math.exp(-cutoff)))
     for k in numba.prange(n):
         project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                      cull_backfaces, exact_norm, analytic, out, bbox, visible)
+                      cull_backfaces, exact_norm, floor, out, bbox, visible)
 
 
 # inlined at numba's level, like gather_node: no per-splat call passing every array
 @numba.njit(cache=True, nogil=True, inline="always")
 def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                  cull_backfaces, exact_norm, analytic, out, bbox, visible):
-    """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, analytic:
-    1 / (2 pi (1 - e^-c))). Shared with the CUDA backend, one thread per splat."""
+                  cull_backfaces, exact_norm, floor, out, bbox, visible):
+    """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
+    e^-c to taper LOD nodes' kernels, else 0). Shared with the CUDA backend, one thread per splat."""
     n = positions.shape[0]
     elliptical = tangents.shape[0] == n
     has_lod = lod_cov.shape[0] == n
@@ -73,7 +75,8 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     if has_lod:
         cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
                np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
-    ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r = project_surfel(
+    (ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r, f11, f12, f22,
+     grad_z) = project_surfel(
         p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
         ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces)
     if not ok:
@@ -85,13 +88,19 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         return  # outside the view frustum
     det = w11 * w22 - w12 * w12
     c11, c12, c22 = w22 / det, -w12 / det, w11 / det
+    # LOD nodes are tapered (their truncation edge would show as a disc); surfels keep the
+    # paper's truncated Gaussian, whose wider tail sums more evenly over a surface
+    node = has_lod and lod_cov[k, 0] + lod_cov[k, 3] + lod_cov[k, 5] > 0.0
+    floor_k = floor if node else 0.0
     norm = 0.0
     if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
-        norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1)
+        norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor_k)
     if norm > 0.0:
         amp = area_px / norm
     else:
-        amp = area_px * analytic / math.sqrt(det)
+        # the integral of exp(-q) - floor over q < c is 2 pi sqrt|W| (1 - e^-c - c floor)
+        mass = 1.0 - math.exp(-cutoff) - cutoff * floor_k
+        amp = area_px / (2.0 * math.pi * mass * math.sqrt(det))
     out[k, MX] = mx
     out[k, MY] = my
     out[k, C11] = c11
@@ -108,6 +117,12 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     out[k, COC] = coc_r
     out[k, X0] = x0  # unclipped bbox columns (ewa.row_pixel_range)
     out[k, X1] = x1
+    f_inv = 1.0 / (f11 * f22 - f12 * f12)
+    out[k, F11] = f22 * f_inv
+    out[k, F12] = -f12 * f_inv
+    out[k, F22] = f11 * f_inv
+    out[k, GRAD_Z] = grad_z
+    out[k, FLOOR] = floor_k
     bbox[k, 0] = cx0
     bbox[k, 1] = cx1
     bbox[k, 2] = cy0
