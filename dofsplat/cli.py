@@ -306,7 +306,9 @@ def _settings(args):
                           background=background, cull_backfaces=not args.no_cull,
                           lod=args.lod, lod_pixel_threshold=args.lod_threshold,
                           lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod,
-                          device=getattr(args, "device", "cpu"))
+                          device=getattr(args, "device", "cpu"),
+                          reconstruction=getattr(args, "reconstruction", "soft"),
+                          taper=getattr(args, "taper", False))
 
 
 def _check_arguments(args) -> None:
@@ -393,7 +395,8 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "cull_backfaces": settings.cull_backfaces,
         "lod": settings.lod, "lod_pixel_threshold": settings.lod_pixel_threshold,
         "lod_blur_fraction": settings.lod_blur_fraction, "show_lod": settings.show_lod,
-        "device": settings.device,
+        "device": settings.device, "reconstruction": settings.reconstruction,
+        "taper": settings.taper,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}
@@ -731,6 +734,11 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
 
     if command == "reference":
         return  # its lens samples are full-resolution pinhole renders: no LOD options
+    p.add_argument("--reconstruction", choices=("soft", "paper"), default="soft",
+                   help="how blurred surfaces meet: soft (default) merges surfaces whose "
+                        "parallax is small against their blur and removes what such a "
+                        "surface hides, so a blurred object touching another shows no seam; "
+                        "paper is Section 6.4's z-range decision alone (docs/maths.md)")
     lod = p.add_argument_group(
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
@@ -753,6 +761,10 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
                           "the blur, to see which levels the depth of field selects")
+    lod.add_argument("--taper", action="store_true",
+                     help="taper LOD nodes' kernels to 0 at the cutoff, so that very large "
+                          "blurs show no hard-edged discs (an experiment: +1 to 1.5 dB on a "
+                          "contact scene, -7 dB against --no-lod on the plane; off by default)")
     if not is_demo:
         lod.add_argument("--lod-cache", metavar="FILE|auto|off", default="auto",
                          help="where the hierarchy is kept between runs: auto (default) "

@@ -41,7 +41,7 @@ class RenderSettings:
     lod_blur_fraction: float = 1.0  # LOD: draw a node when its filter is at most this x the DOF blur (variance)
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
-    taper: bool = True  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
+    taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
 
     def __post_init__(self):

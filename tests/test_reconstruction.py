@@ -1,0 +1,78 @@
+"""The soft surface reconstruction (docs/maths.md, "Surface reconstruction"): the merge
+fraction, the resolve against its partition-sum twin, and the contact seam it removes."""
+
+import math
+
+import numpy as np
+import pytest
+
+import dofsplat as ds
+from dofsplat.raster.abuffer import (MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, merge_fraction,
+                                     resolve_pixel)
+from dofsplat.slow import _resolve, merge_fraction_reference
+
+MERGE = (20.0, 1 / 3.0, 0.15, 0.5)  # K = 20 px, focus at 3, the default band
+
+
+def test_merge_fraction_limits():
+    k, inv_p, r0, r1 = MERGE
+    # a pinhole (K = 0) never merges: the paper's "over"
+    assert merge_fraction(1.0, 1.01, 1.0, 0.0, inv_p, r0, r1) == 0.0
+    # two surfaces at one depth, far from focus: rho = 1 / C_r -> one layer
+    assert merge_fraction(1.5, 1.5, 1.0, k, inv_p, r0, r1) == 1.0
+    # a sharp surface before a blurred one: Delta = C_r of the far one, rho > 1 -> "over"
+    assert merge_fraction(3.0, 6.0, 1.0, k, inv_p, r0, r1) == 0.0
+    # a translucent front is composited over what is behind it
+    assert merge_fraction(1.5, 1.5, 0.5, k, inv_p, r0, r1) == 0.0
+    # in between: smooth, and the twin agrees
+    for d_back in np.linspace(1.5, 2.5, 21):
+        m = merge_fraction(1.5, d_back, 1.0, k, inv_p, r0, r1)
+        assert 0.0 <= m <= 1.0
+        assert m == pytest.approx(merge_fraction_reference(1.5, d_back, 1.0, MERGE), abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_resolve_equals_the_sum_over_partitions(seed):
+    """The O(n^2) table against the explicit expectation over all 2^(n-1) runs, 1e-12."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, MAX_SURFACES + 1))
+    acc = np.zeros((1, MAX_SURFACES, N_ACC))
+    surfaces = []
+    for i in range(n):
+        w = rng.uniform(0.1, 1.5)
+        d = rng.uniform(1.2, 1.9)  # close depths, far from focus: merge fractions in (0, 1)
+        alpha = 1.0 if rng.uniform() < 0.8 else rng.uniform(0.3, 1)
+        rgb = rng.uniform(0, 1, 3)
+        s = [w, *(w * rgb), w * alpha, w * d, d - 0.01, d + 0.01]
+        acc[0, i] = s
+        surfaces.append(s)
+    cnt = np.array([n])
+    out = np.empty(7)
+    resolve_pixel(acc, cnt, 0, 0.1, 0.2, 0.3, out, np.empty(MAX_SURFACES, np.int64),
+                  np.empty(RESOLVE_SCRATCH), *MERGE)
+    rgba, depth, nearest = _resolve(surfaces, (0.1, 0.2, 0.3), MERGE)
+    np.testing.assert_allclose(out[:4], rgba, atol=1e-12)
+    assert out[4] == pytest.approx(depth) and out[5] == pytest.approx(nearest)
+
+
+def test_contact_seam_is_softened():
+    """Where the demo's blurred red sphere rests on the floor, the paper's binary
+    merge/separate decision draws a hard line with a pale ghost under it; the soft
+    reconstruction moves towards the reference there. Measured at 160 x 120, A = 0.75 (CoC
+    about 20 px at the sphere), no LOD, against 64 lens samples, in the strip under the
+    sphere: soft 25.20 dB, paper 24.82 dB (whole frame 35.12 / 34.86). The bound asks for
+    half of that gain: a change that brings back the binary decision fails it."""
+    import dataclasses
+
+    from dofsplat.demo import demo_scene
+    from dofsplat.metrics import psnr
+    from dofsplat.reference import render_reference
+
+    surfels, cam, lens = demo_scene(160, 120)
+    lens = dataclasses.replace(lens, aperture=0.75)
+    ref = render_reference(surfels, cam, lens, samples=64, progress=False).image
+    scores = {}
+    for rec in ("soft", "paper"):
+        img = ds.render(surfels, cam, lens, ds.RenderSettings(lod=False, reconstruction=rec)).image
+        scores[rec] = psnr(img[85:110, :50], ref[85:110, :50])
+    assert scores["soft"] > scores["paper"] + 0.19
