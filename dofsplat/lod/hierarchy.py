@@ -2,7 +2,10 @@
 
 The tree is binary and built top down: each node's surfels are split at the median along
 the longest axis of their bounding box (QSplat's split, with two children instead of up to
-four). A node with m surfels has 2m - 1 nodes in its subtree, and nodes are stored in
+four), or, where their normals are about 90 degrees apart or more, along the normal
+component that spreads most: a node then never spans two surfaces that meet at an angle (a
+sphere and the floor it rests on, the two sides of a leaf), which one flat splat would draw
+as a blend of both. A node with m surfels has 2m - 1 nodes in its subtree, and nodes are stored in
 preorder, so the tree needs no child pointers:
 
     left child of node i  = i + 1
@@ -46,7 +49,10 @@ import numpy as np
 from ..errors import DofsplatError
 from ..surfels import Surfels
 
-FORMAT_VERSION = 3  # bump when the build or the stored arrays change: old files are rebuilt
+# a node whose unit normals spread by more than this in one component (1.4 ~ sqrt 2: normals
+# about 90 degrees apart) is split by normal, not by position (docs/maths.md)
+NORMAL_SPREAD = 1.4
+FORMAT_VERSION = 4  # bump when the build or the stored arrays change: old files are rebuilt
 
 
 @dataclass
@@ -177,6 +183,7 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
     weight = surfels.weight if surfels.weight is not None else np.ones(n, np.float32)
 
     # top down: median splits, level by level (each level's nodes in parallel)
+    keys = np.ascontiguousarray(np.hstack([positions, surfels.normals]), np.float32)
     m_nodes = 2 * n - 1
     order = np.arange(n, dtype=np.int32)
     start = np.empty(m_nodes, np.int32)
@@ -192,7 +199,7 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
         ids, starts, counts = ids[inner], starts[inner], counts[inner]
         if not ids.size:
             break
-        _split_nodes(positions, order, starts, counts)
+        _split_nodes(keys, order, starts, counts)
         half = counts // 2
         ids = np.concatenate([ids + 1, ids + 2 * half])
         starts = np.concatenate([starts, starts + half])
@@ -242,13 +249,13 @@ def _progress(enabled: bool, n: int):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _bounds(positions, order, s, e):
-    """Bounding box (lo x, y, z, hi x, y, z) of the surfels order[s:e]."""
+def _bounds(positions, order, s, e, col=0):
+    """Bounding box (lo x, y, z, hi x, y, z) of the surfels order[s:e] (columns col..col+2)."""
     lo0 = lo1 = lo2 = np.inf
     hi0 = hi1 = hi2 = -np.inf
     for j in range(s, e):
         k = order[j]
-        x, y, z = positions[k, 0], positions[k, 1], positions[k, 2]
+        x, y, z = positions[k, col], positions[k, col + 1], positions[k, col + 2]
         lo0, hi0 = min(lo0, x), max(hi0, x)
         lo1, hi1 = min(lo1, y), max(hi1, y)
         lo2, hi2 = min(lo2, z), max(hi2, z)
@@ -256,19 +263,33 @@ def _bounds(positions, order, s, e):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _split_nodes(positions, order, starts, counts):
-    """For each node, move the lower half of its surfels (along its bbox's longest axis) first."""
+def _split_nodes(keys, order, starts, counts):
+    """For each node, move the lower half of its surfels first, along its bbox's longest axis,
+    or along the normal component that spreads most, where it spreads over NORMAL_SPREAD.
+
+    keys: (N, 6) float32, positions then unit normals.
+    """
     for t in numba.prange(starts.shape[0]):
         s = starts[t]
         e = s + counts[t]
-        lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(positions, order, s, e)
+        lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(keys, order, s, e, 0)
         axis = 0
         ext = hi0 - lo0
         if hi1 - lo1 > ext:
             axis, ext = 1, hi1 - lo1
         if hi2 - lo2 > ext:
-            axis = 2
-        _select_nth(order, s, e - 1, s + counts[t] // 2, positions, axis)
+            axis, ext = 2, hi2 - lo2
+        # a node over two surfaces (a sphere on a floor, two sides of a leaf) would be drawn
+        # as one flat splat: where the normals spread widely, separate the surfaces first
+        n0, n1, n2, m0, m1, m2 = _bounds(keys, order, s, e, 3)
+        spread = NORMAL_SPREAD
+        if m0 - n0 > spread:
+            axis, spread = 3, m0 - n0
+        if m1 - n1 > spread:
+            axis, spread = 4, m1 - n1
+        if m2 - n2 > spread:
+            axis = 5
+        _select_nth(order, s, e - 1, s + counts[t] // 2, keys, axis)
 
 
 @numba.njit(cache=True, nogil=True)
