@@ -172,8 +172,12 @@ class ThinLens:
     aperture: float | None = None  # A, lens diameter, world units
     focal_length: float | None = None  # F, world units (only to derive A and check P > F)
     f_number: float | None = None  # n = F / A
+    bokeh: str = "disc"  # the blur's shape: "disc" (the aperture's, a real lens) or "gaussian" (the paper's)
+    blades: int = 0  # straight aperture blades (>= 5) for a polygonal aperture; 0 = round
+    blade_rotation: float = 0.0  # degrees, counterclockwise on the screen: the polygon's turn
 
     def __post_init__(self):
+        _check_aperture_shape(self)
         p = _positive("focus distance", self.focus_distance)
         if self.aperture is not None:
             a = float(self.aperture)
@@ -221,8 +225,12 @@ class EyeLens:
     pixels_per_unit: float  # R, screen pixels per world unit
     pupil_diameter: float = 0.004  # A
     retina_distance: float = 0.024  # V_p
+    bokeh: str = "disc"  # the blur's shape: "disc" (a round pupil) or "gaussian" (the paper's)
+    blades: int = 0  # straight blades (>= 5) for a polygonal aperture; 0 = round
+    blade_rotation: float = 0.0  # degrees, counterclockwise on the screen
 
     def __post_init__(self):
+        _check_aperture_shape(self)
         _positive("focus distance", self.focus_distance)
         _positive("screen distance", self.screen_distance)
         _positive("screen resolution", self.pixels_per_unit)
@@ -247,6 +255,23 @@ class EyeLens:
     def coc_radius_px(self, depth, camera: Camera | None = None):
         k, inv_p = self.coc_coefficients(camera)
         return k * np.abs(1.0 / np.asarray(depth, np.float64) - inv_p)
+
+
+BOKEHS = ("disc", "gaussian")
+MAX_BLADES = 16
+
+
+def _check_aperture_shape(lens) -> None:
+    if lens.bokeh not in BOKEHS:
+        raise DofsplatError(f"bokeh must be one of {', '.join(BOKEHS)}, got {lens.bokeh!r}")
+    blades = lens.blades
+    if isinstance(blades, bool) or not isinstance(blades, (int, np.integer)) \
+            or not (blades == 0 or 5 <= blades <= MAX_BLADES):
+        raise DofsplatError(f"blades must be 0 (round) or 5 to {MAX_BLADES}, got {blades!r}")
+    if blades and lens.bokeh != "disc":
+        raise DofsplatError("blades shape the aperture's image: they need bokeh='disc'")
+    if not math.isfinite(float(lens.blade_rotation)):
+        raise DofsplatError(f"blade rotation must be a finite angle, got {lens.blade_rotation}")
 
 
 # ----------------------------------------------------------------------------------------
@@ -274,12 +299,13 @@ def coc_radius_px_eye(C, screen_distance, pixels_per_unit, retina_distance=0.024
 
 def photographic(eye, target, up=(0.0, 1.0, 0.0), *, width=512, height=512,
                  focal_length_mm=50.0, sensor_width_mm=36.0, f_number=2.8,
-                 focus_m: float | None = None, unit_m: float = 1.0) -> tuple[Camera, ThinLens]:
+                 focus_m: float | None = None, unit_m: float = 1.0, bokeh: str = "disc",
+                 blades: int = 0, blade_rotation: float = 0.0) -> tuple[Camera, ThinLens]:
     """A camera and lens from photographic settings.
 
     focal_length_mm, sensor_width_mm, f_number as on a real camera; focus_m the focus
     distance in metres (default: the distance to ``target``); unit_m the length of one
-    world unit in metres. The sensor sits at the image distance V_p = FP/(P-F), so the
+    world unit in metres; bokeh, blades, blade_rotation the aperture's shape (``ThinLens``). The sensor sits at the image distance V_p = FP/(P-F), so the
     field of view is that of a lens focused at P (focus breathing), and the CoC in pixels
     equals the CoC on the sensor times W / sensor width.
     """
@@ -292,7 +318,8 @@ def photographic(eye, target, up=(0.0, 1.0, 0.0), *, width=512, height=512,
         p = float(np.linalg.norm(np.subtract(target, eye)))
     else:
         p = _positive("focus distance", focus_m) / unit_m
-    lens = ThinLens(focus_distance=p, focal_length=f, f_number=f_number)
+    lens = ThinLens(focus_distance=p, focal_length=f, f_number=f_number, bokeh=bokeh,
+                    blades=blades, blade_rotation=blade_rotation)
     v_p = f * p / (p - f)
     near = f  # any N works; keep the frustum in camera units
     right = near * (s / 2) / v_p

@@ -286,11 +286,14 @@ def _lens(args, focus: float, default_aperture: float):
     """The thin lens from --aperture, or --focal-length with --f-number, or the default."""
     from .camera import ThinLens
 
+    shape = {"bokeh": getattr(args, "bokeh", "disc"), "blades": getattr(args, "blades", 0),
+             "blade_rotation": getattr(args, "blade_rotation", 0.0)}
     if args.f_number is not None:
         return ThinLens(focus_distance=focus, focal_length=args.focal_length,
-                        f_number=args.f_number)
+                        f_number=args.f_number, **shape)
     aperture = args.aperture if args.aperture is not None else default_aperture
-    return ThinLens(focus_distance=focus, aperture=aperture, focal_length=args.focal_length)
+    return ThinLens(focus_distance=focus, aperture=aperture, focal_length=args.focal_length,
+                    **shape)
 
 
 def _settings(args):
@@ -386,6 +389,8 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "aperture": lens.diameter,
         "focal_length": None if lens.focal_length is None else float(lens.focal_length),
         "f_number": None if lens.f_number is None else float(lens.f_number),
+        "bokeh": lens.bokeh, "blades": int(lens.blades),
+        "blade_rotation": float(lens.blade_rotation),
         "focus_source": focus_source,
         "focus_at_px": None if args.focus_at is None else list(args.focus_at),
     }
@@ -695,6 +700,15 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                            "model measured in metres); with --f-number it sets the lens "
                            "diameter, and the focus distance must exceed it. The field of "
                            "view is set by --fov or --frustum, not by F")
+    lens.add_argument("--bokeh", choices=("disc", "gaussian"), default="disc",
+                      help="the blur's shape: disc (default), the aperture's own image, flat "
+                           "with a crisp edge as in a photograph; gaussian, the paper's soft "
+                           "blob of the same size (docs/maths.md)")
+    lens.add_argument("--blades", metavar="N", type=_blades, default=0,
+                      help="straight aperture blades, 5 to 16: defocused highlights become "
+                           "N-gons (default 0: round)")
+    lens.add_argument("--blade-rotation", metavar="DEG", type=_finite, default=0.0,
+                      help="turn the polygon of --blades by DEG degrees, counterclockwise")
     focus = lens.add_mutually_exclusive_group()
     focus.add_argument("--focus", metavar="P", type=_positive,
                        help="focus distance, world units, measured along the view axis "
@@ -774,6 +788,26 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
 
 
 # -- argument types: each raises ArgumentTypeError, which argparse reports on one line ---
+
+
+def _blades(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of blades, got {text!r}")
+    if n != 0 and not 5 <= n <= 16:
+        raise argparse.ArgumentTypeError(f"blades must be 0 (round) or 5 to 16, got {n}")
+    return n
+
+
+def _finite(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}")
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return x
 
 
 def _size(text: str) -> tuple[int, int]:

@@ -63,6 +63,27 @@ def lens_samples(n: int, diameter: float) -> np.ndarray:
     return np.stack([r * np.cos(theta), r * np.sin(theta)], axis=1)
 
 
+def polygon_samples(n: int, diameter: float, blades: int, rotation_deg: float) -> np.ndarray:
+    """(n, 2) lens-plane offsets spread uniformly over a regular polygon (x right, y up).
+
+    The polygon has ``blades`` edges and circumradius diameter/2, its first vertex at
+    ``rotation_deg`` counterclockwise from x. Sample i takes a sector by the golden-ratio
+    sequence (equal areas: each of the N triangles from the centre) and a point in it by
+    (i + 1/2)/n, so the density is uniform over the polygon and every n is deterministic.
+    """
+    i = np.arange(n, dtype=np.float64)
+    u = (i + 0.5) / n  # radial coordinate (area-uniform below)
+    v = (i * (math.sqrt(5.0) - 1.0) / 2.0) % 1.0  # golden-ratio sequence over the angle
+    sector = np.floor(v * blades)
+    t = v * blades - sector  # position across the sector's outer edge, 0..1
+    a0 = math.radians(rotation_deg) + sector * 2 * math.pi / blades
+    a1 = a0 + 2 * math.pi / blades
+    r = 0.5 * diameter * np.sqrt(u)  # area-uniform in the triangle: scale by sqrt(u)
+    x = r * ((1 - t) * np.cos(a0) + t * np.cos(a1))
+    y = r * ((1 - t) * np.sin(a0) + t * np.sin(a1))
+    return np.stack([x, y], axis=1)
+
+
 def effective_diameter(camera: Camera, lens: ThinLens | EyeLens | None) -> float:
     """The lens diameter A (world units) whose rim samples move points by the lens's C_r."""
     if lens is None:
@@ -98,6 +119,10 @@ def lens_cameras(camera: Camera, lens: ThinLens | EyeLens | None,
     samples = _check_samples(samples)
     if lens is None or effective_diameter(camera, lens) == 0.0:
         return [camera]
+    if offsets is None and getattr(lens, "blades", 0):
+        # the polygonal aperture, uniformly (y up in the lens plane, as on the screen)
+        offsets = polygon_samples(samples, effective_diameter(camera, lens), lens.blades,
+                                  lens.blade_rotation)
     if offsets is None:
         offsets = lens_samples(samples, effective_diameter(camera, lens))
     offsets = np.asarray(offsets, np.float64)

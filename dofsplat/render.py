@@ -143,7 +143,7 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
 
     merge = merge_parameters(camera, blur_lens, settings)
     image, depth, weight, raster_stats = rasterize(splats, bbox, visible, bands, camera, settings,
-                                                   merge)
+                                                   merge, blur_lens)
     times["bin_ms"] += raster_stats.pop("bin_ms")
     times["raster_ms"] = raster_stats.pop("raster_ms")
     times["front_ms"] = raster_stats.pop("front_ms")
@@ -250,13 +250,25 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     splats = np.empty((n, N_FIELDS), np.float64)
     bbox = np.empty((n, 4), np.int32)
     visible = np.empty(n, np.bool_)
+    disc, blades, table = aperture_shape(lens, settings)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
                    np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
-                   kernel_floor(settings), splats, bbox, visible)
+                   kernel_floor(settings), disc, blades, table, splats, bbox, visible)
     return splats, bbox, visible
+
+
+def aperture_shape(lens, settings: RenderSettings) -> tuple[bool, np.ndarray, np.ndarray]:
+    """(disc, blades, table): whether kernels carry the aperture's shape (splat/bokeh.py),
+    the (N, 2) edge normals of a polygonal aperture ((0, 2) for a round one), and the table
+    of the Gaussian-disc convolution for this cutoff."""
+    from .splat.bokeh import aperture_table, blade_normals
+
+    disc = lens is not None and settings.dof and getattr(lens, "bokeh", "gaussian") == "disc"
+    blades = blade_normals(lens.blades, lens.blade_rotation) if disc else np.zeros((0, 2))
+    return disc, blades, aperture_table(settings.cutoff)
 
 
 def kernel_floor(settings: RenderSettings) -> float:
@@ -294,9 +306,10 @@ def merge_parameters(camera: Camera, lens, settings: RenderSettings) -> tuple[fl
 
 
 def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings,
-              merge=(0.0, 0.0, 0.25, 0.75)):
+              merge=(0.0, 0.0, 0.15, 0.5), lens=None):
     """A-buffer rasterisation and resolve, band by band (Section 6.4).
 
+    lens: the lens whose aperture shape the splats carry (``aperture_shape``).
     merge: ``merge_parameters``; with K > 0 a front pass first finds, per pixel, the
     nearest opaque unblurred disk, and every splat hidden behind a front of the same layer
     (``abuffer.splat_visibility``) gives up that share of its weight (docs/maths.md,
@@ -312,6 +325,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     weight = np.empty((h, w), np.float32)
     background = np.asarray(settings.background, np.float64)
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
+    _, blades, table = aperture_shape(lens, settings)
+    u_c = math.sqrt(2.0 * settings.cutoff)
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0
     binned = {}
@@ -333,7 +348,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
         rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
                        background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
-                       rho1)
+                       rho1, blades, table, u_c)
         raster_ms += _ms(t)
         frags += int(tile_stats[:, 0].sum())
         overflows += int(tile_stats[:, 1].sum())

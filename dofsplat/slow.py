@@ -74,13 +74,14 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
     """
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
-                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GRAD_Z, GREEN, MX,
-                                MY, N_FIELDS, RED, X0, X1, ZHI, ZLO)
-    from .render import kernel_floor
+                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GRAD_Z, GREEN, MIX,
+                                MX, MY, N_FIELDS, RAD, REACH, RED, X0, X1, ZHI, ZLO)
+    from .render import aperture_shape, kernel_floor
 
     n = len(surfels)
     c = float(settings.cutoff)
     taper = kernel_floor(settings)  # an LOD node's kernel is exp(-q) - e^-c inside the cutoff
+    disc, blades, _ = aperture_shape(lens, settings)
     src = from_surfels(surfels)
     ru, rv, area = src.ru, src.rv, src.area
     view = camera.camera_from_world()
@@ -120,12 +121,18 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         Sq = np.zeros((3, 3)) if lod_cov is None else _sym3(lod_cov[k])
         G = d_proj @ rot
         Q = G @ Sq @ G.T
-        if np.any(Q != 0):
+        radius = 0.0
+        if disc:  # the aperture's shape: the Gaussian keeps the unblurred kernel (bokeh.py)
+            radius = math.sqrt(max(coc_r ** 2 - 4 / 3 * np.trace(Q), 0.0))
+            v_dof = 0.0
+        if disc:
+            blur = Q  # circumellipse(Q, Q/3) is Q itself
+        elif np.any(Q != 0):
             blur = circumellipse_general_eig(Q, v_dof * np.eye(2) + Q / 3 + 1e-9 * np.eye(2))
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur
-        hx, hy = math.sqrt(2 * c * W[0, 0]), math.sqrt(2 * c * W[1, 1])
+        hx, hy = math.sqrt(2 * c * W[0, 0]) + radius, math.sqrt(2 * c * W[1, 1]) + radius
         x0, x1 = math.floor(m[0] - hx - 0.5), math.ceil(m[0] + hx - 0.5)
         y0, y1 = math.floor(m[1] - hy - 0.5), math.ceil(m[1] + hy - 0.5)
         cx0, cx1 = max(x0, 0), min(x1, camera.width - 1)
@@ -136,7 +143,13 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         floor = taper if np.trace(Sq) > 0 else 0.0
         area_px = abs(np.linalg.det(J)) * area[k]
         total = 0.0
-        if settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
+        support = radius + math.sqrt(2 * c * np.linalg.eigvalsh(W).max())
+        mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
+        if radius > 0:
+            floor = 0.0
+            total = float(aperture_reference(m, W, radius, mix, support, blades, c,
+                                             x0, x1, y0, y1).sum())
+        elif settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
             q = _exponents(m, Wi, x0, x1, y0, y1)
             total = float((np.exp(-q[q < c]) - floor).sum())
         if total > 0:
@@ -162,6 +175,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         Fi = np.linalg.inv(F)
         splats[k, [F11, F12, F22]] = Fi[0, 0], Fi[0, 1], Fi[1, 1]
         splats[k, FLOOR] = floor
+        splats[k, [RAD, REACH, MIX]] = radius, support, mix
         splats[k, GRAD_Z] = float(np.linalg.norm(-np.array([tu[k, 2], tv[k, 2]]) @ np.linalg.inv(J)))
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
@@ -182,13 +196,16 @@ def _exponents(m, Wi, x0, x1, y0, y1):
 
 
 def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
-                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5)):
+                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5), blades=None):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
-    merge: (K, 1/P, rho0, rho1) of ``render.merge_parameters`` (K = 0: the paper's "over").
+    merge: (K, 1/P, rho0, rho1) of ``render.merge_parameters`` (K = 0: the paper's "over");
+    blades: (N, 2) edge normals of a polygonal aperture (None: round).
     """
-    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MX, MY,
-                                RED, ZHI, ZLO)
+    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX,
+                                MY, RAD, REACH, RED, ZHI, ZLO)
+
+    blades = np.zeros((0, 2)) if blades is None else blades
 
     splats = splats.copy()
     if merge[0] > 0:
@@ -204,9 +221,15 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             continue
         Wi = np.array([[s[C11], s[C12]], [s[C12], s[C22]]])
         x0, x1, y0, y1 = bbox[k]
-        q = _exponents(s[[MX, MY]], Wi, x0, x1, y0, y1)
-        for i, j in zip(*np.nonzero(q < cutoff)):
-            w = s[AMP] * (math.exp(-q[i, j]) - s[FLOOR])
+        if s[RAD] > 0:
+            kern = aperture_reference(s[[MX, MY]], np.linalg.inv(Wi), s[RAD], s[MIX], s[REACH],
+                                      blades, cutoff, x0, x1, y0, y1)
+        else:
+            q = _exponents(s[[MX, MY]], Wi, x0, x1, y0, y1)
+            kern = np.where(q < cutoff, np.exp(-q) - s[FLOOR], 0.0)
+            kern[q >= cutoff] = -1.0  # outside: no fragment (a tapered edge may be 0 inside)
+        for i, j in zip(*np.nonzero(kern > 0 if s[RAD] > 0 else kern >= 0)):
+            w = s[AMP] * kern[i, j]
             frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
                     s[ZLO], s[ZHI]]
             _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
@@ -218,6 +241,35 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
         for j in range(width):
             image[i, j], depth[i, j], weight[i, j] = _resolve(abuf[i][j], background, merge)
     return image, depth, weight, fragments
+
+
+def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1):
+    """The aperture kernel (splat/bokeh.py) at the pixel centres of [x0, x1] x [y0, y1],
+    from its definition in numpy, the table read by scipy's linear interpolation; 0 beyond
+    ``reach`` pixels of the centre."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from .splat.bokeh import B_MAX, TABLE_B, TABLE_U, aperture_table
+
+    u_c = math.sqrt(2 * cutoff)
+    table = RegularGridInterpolator((np.linspace(0, B_MAX, TABLE_B),
+                                     np.linspace(-B_MAX, u_c, TABLE_U)), aperture_table(cutoff))
+    ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1] + 0.5
+    d = np.stack([xs - m[0], ys - m[1]], axis=-1)
+    r = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-300)
+    n = d / r[..., None]
+    s_gauss = np.sqrt(np.einsum("...i,ij,...j->...", n, np.linalg.inv(W), n))
+    s_edge = 1 / np.sqrt(np.einsum("...i,ij,...j->...", n, W, n))
+    scale = s_gauss * (s_edge / s_gauss) ** mix
+    rad = np.full(r.shape, radius)
+    if len(blades):
+        rad = radius * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=-1)
+    b = rad * scale
+    u = r * scale - b
+    value = table(np.stack([np.minimum(b, B_MAX), np.clip(u, -B_MAX, u_c)], axis=-1))
+    value = np.where(u < -B_MAX, 1.0, np.where(u >= u_c, 0.0, value))
+    inside = (ys - 0.5 - m[1] + 0.5) ** 2 + (xs - m[0]) ** 2 <= reach ** 2
+    return np.where(inside, value, 0.0)
 
 
 def merge_fraction_reference(d_front, d_back, opacity_front, merge):
@@ -363,11 +415,12 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
 
 def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None):
     """The whole pipeline from the twins (shading is shared: it is numpy already)."""
-    from .render import merge_parameters, shade_surfels
+    from .render import aperture_shape, merge_parameters, shade_surfels
 
     settings = settings or RenderSettings()
     rgb = shade_surfels(surfels, camera, settings)
     splats, bbox, visible = project_reference(surfels, rgb, camera, lens, settings)
     return rasterize_reference(splats, bbox, visible, camera.width, camera.height,
                                settings.cutoff, settings.background,
-                               merge=merge_parameters(camera, lens, settings))
+                               merge=merge_parameters(camera, lens, settings),
+                               blades=aperture_shape(lens, settings)[1])

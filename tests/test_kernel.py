@@ -71,12 +71,13 @@ def test_analytic_compensation_is_close_but_not_exact():
 
 
 def test_out_of_focus_blob_second_moment():
-    """A tiny surfel far out of focus: per-axis variance 1 + C_r^2/(2 ln 4) + J V^r J^T.
+    """The paper's Gaussian (bokeh="gaussian"): a tiny surfel far out of focus has per-axis
+    variance 1 + C_r^2/(2 ln 4) + J V^r J^T.
 
     Rendered with c = 8, whose truncation shrinks the moment by 1 - c e^-c/(1 - e^-c) = 0.9973.
     """
     cam = front_camera(160, 160, distance=2.0)
-    lens = ds.ThinLens(focus_distance=1.0, aperture=0.3)
+    lens = ds.ThinLens(focus_distance=1.0, aperture=0.3, bokeh="gaussian")
     s, cam, res = single_splat(radius=1e-4, cutoff=8.0, lens=lens, cam=cam, pos=(0, 0, 0))
     coc = lens.coc_radius_px(2.0, cam)
     assert coc > 10

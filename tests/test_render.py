@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import dofsplat as ds
-from dofsplat.render import merge_parameters, project, shade_surfels
+from dofsplat.render import aperture_shape, merge_parameters, project, shade_surfels
 from dofsplat.slow import project_reference, rasterize_reference, render_reference
 from dofsplat.surfels import concatenate
 
@@ -135,7 +135,7 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     res = ds.render(s, cam, lens, st)
     img, depth, weight, frags = rasterize_reference(
         *fast, cam.width, cam.height, st.cutoff, st.background,
-        merge=merge_parameters(cam, lens, st))
+        merge=merge_parameters(cam, lens, st), blades=aperture_shape(lens, st)[1])
     np.testing.assert_allclose(res.image, img, atol=1e-4)
     np.testing.assert_allclose(res.weight, weight, atol=1e-4)
     np.testing.assert_array_equal(np.isinf(res.depth), np.isinf(depth))

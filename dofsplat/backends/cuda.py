@@ -51,8 +51,9 @@ from ..lod.select import DESCEND, SELECT, gather_splat, visit_node
 from ..raster.abuffer import (MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE, front_fragments,
                               insert_fragment, resolve_to_image, splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MX, MY,
-                             N_FIELDS,
+from ..splat.bokeh import aperture_kernel
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX, MY,
+                             N_FIELDS, RAD, REACH,
                              RED, X0, X1, ZHI, ZLO, project_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
@@ -97,6 +98,7 @@ _front_fragments = device_twin(front_fragments)
 _splat_visibility = device_twin(splat_visibility)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
+_aperture_kernel = device_twin(aperture_kernel)
 
 # Block sizes. The simulator runs every thread as a Python thread: smaller blocks there keep
 # the tests fast and take the multi-level scan and the global-memory sort on tiny inputs.
@@ -224,12 +226,12 @@ def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shini
 @cuda.jit
 def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
              by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
-             exact_norm, floor, out, bbox, visible):
+             exact_norm, floor, disc, blades, table, out, bbox, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
         _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                        ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                       cull_backfaces, exact_norm, floor, out, bbox, visible)
+                       cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox, visible)
 
 
 @cuda.jit
@@ -337,7 +339,8 @@ def _sort_tiles(offsets, ids):
 
 @cuda.jit
 def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg_g, bg_b,
-               image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1):
+               image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1, blades, table,
+               u_c):
     """One block per tile, one thread per pixel: A-buffer insert of the tile's fragments in
     splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
     batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float64)
@@ -368,7 +371,23 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
-                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0:
+                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0 and batch[s, RAD] > 0.0:
+                    # the aperture's shape (splat/bokeh.py)
+                    dx, dy = j + 0.5 - batch[s, MX], i + 0.5 - batch[s, MY]
+                    if batch[s, X0] <= j <= batch[s, X1] \
+                            and dx * dx + dy * dy <= batch[s, REACH] * batch[s, REACH]:
+                        c11, c12, c22 = batch[s, C11], batch[s, C12], batch[s, C22]
+                        det = c11 * c22 - c12 * c12
+                        wk = _aperture_kernel(_exponent(dx, dy, c11, c12, c22), dx, dy,
+                                              batch[s, RAD], c22 / det, -c12 / det, c11 / det,
+                                              batch[s, MIX], blades, table, u_c)
+                        if wk > 0.0:
+                            overflows += _insert_fragment(
+                                acc, cnt, 0, batch[s, AMP] * wk, batch[s, RED], batch[s, GREEN],
+                                batch[s, BLUE], batch[s, ALPHA], batch[s, DEPTH], batch[s, ZLO],
+                                batch[s, ZHI])
+                            frags += 1
+                elif rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0:
                     mx, my = batch[s, MX], batch[s, MY]
                     c11, c12, c22 = batch[s, C11], batch[s, C12], batch[s, C22]
                     j0, j1 = _row_pixel_range(i, mx, my, c11, c12, c22, cutoff,
@@ -586,7 +605,7 @@ def shade_cuda(source: SplatSource, camera, settings):
 
 def project_cuda(source: SplatSource, rgb, camera, lens, settings):
     """EWA projection with the DOF blur on the GPU: splats, bbox, visible (render.project's twin)."""
-    from ..render import coc_coefficients, kernel_floor
+    from ..render import aperture_shape, coc_coefficients, kernel_floor
 
     n = source.size
     splats = _WS.get("splats", (n, N_FIELDS), np.float64)
@@ -598,12 +617,14 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings):
         view_t = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
         cutoff = float(settings.cutoff)
         floor = kernel_floor(settings)
+        disc, blades, table = aperture_shape(lens, settings)
         _project[_blocks(n), THREADS](
             source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
             rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
             float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
             float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
-            bool(settings.exact_normalization), floor, splats, bbox, visible)
+            bool(settings.exact_normalization), floor, disc, _upload(blades), _upload(table),
+            splats, bbox, visible)
     return splats, bbox, visible
 
 
@@ -638,13 +659,16 @@ def bin_cuda(bbox, visible, camera):
     return offsets, ids, _scalar(n_visible)
 
 
-def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge):
+def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge, lens=None):
     """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats.
 
     merge: ``render.merge_parameters``; with K > 0 the front pass and the splats'
     visibility come first, as in ``render.rasterize``.
     """
     from ..raster.abuffer import OPAQUE
+    from ..render import aperture_shape
+
+    _, blades, table = aperture_shape(lens, settings)
 
     w, h = camera.width, camera.height
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
@@ -664,7 +688,8 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge)
     bg = [float(c) for c in settings.background]
     _rasterize[n_tx * n_ty, PIXELS](splats, bbox, offsets, ids, n_tx, w, h, float(settings.cutoff),
                                     bg[0], bg[1], bg[2], image, depth, weight, tile_stats,
-                                    coc_k, inv_focus, rho0, rho1)
+                                    coc_k, inv_focus, rho0, rho1, _upload(blades),
+                                    _upload(table), math.sqrt(2.0 * settings.cutoff))
     return image, depth, weight, tile_stats
 
 
@@ -729,7 +754,7 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
     clock.mark("bin_ms")
     merge = merge_parameters(camera, blur_lens, settings)
     image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, visible, offsets, ids, camera,
-                                                      settings, merge)
+                                                      settings, merge, blur_lens)
     clock.mark("raster_ms")
     frags, overflows = tile_stats.copy_to_host().sum(axis=0)
     stats = {

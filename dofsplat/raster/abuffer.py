@@ -22,9 +22,10 @@ import math
 import numba
 import numpy as np
 
-from ..splat.ewa import exponent, row_pixel_range, row_start
+from ..splat.bokeh import aperture_kernel
+from ..splat.ewa import disc_row_range, exponent, row_pixel_range, row_start
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
-                             GRAD_Z, GREEN, MX, MY, RED, X0, X1, ZHI, ZLO)
+                             GRAD_Z, GREEN, MIX, MX, MY, RAD, REACH, RED, X0, X1, ZHI, ZLO)
 
 TILE = 16
 MAX_SURFACES = 8
@@ -385,7 +386,8 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
-                   background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1):
+                   background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1,
+                   blades, table, u_c):
     """Rasterise and resolve the tiles of one band (tile rows ty0..) into the output images.
 
     image: (H, W, 4) float32; depth, weight: (H, W) float32; tile_stats: (n_tiles, 2) int64
@@ -413,6 +415,28 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             d, zlo, zhi = splats[k, DEPTH], splats[k, ZLO], splats[k, ZHI]
             floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
+            radius = splats[k, RAD]
+            if radius > 0.0:
+                # the aperture's shape (splat/bokeh.py): a table look-up per fragment
+                det = c11 * c22 - c12 * c12
+                w11, w12, w22 = c22 / det, -c12 / det, c11 / det
+                mix, reach = splats[k, MIX], splats[k, REACH]
+                for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
+                    j0, j1 = disc_row_range(i, mx, my, reach, x0, x1)
+                    ja, jb = max(j0, px0), min(j1, px1)
+                    dy = i + 0.5 - my
+                    p = (i - py0) * TILE + (ja - px0)
+                    for j in range(ja, jb + 1):
+                        dx = j + 0.5 - mx
+                        q = exponent(dx, dy, c11, c12, c22)
+                        wk = aperture_kernel(q, dx, dy, radius, w11, w12, w22, mix, blades,
+                                             table, u_c)
+                        if wk > 0.0:
+                            overflows += insert_fragment(acc, cnt, p, amp * wk, r, g, b, a, d,
+                                                         zlo, zhi)
+                            frags += 1
+                        p += 1
+                continue
             step2 = math.exp(-c11)
             for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
                 j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1)

@@ -133,7 +133,9 @@ def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     w11 = a11 * a11 + a12 * a12 + 1.0
     w12 = a11 * a21 + a12 * a22
     w22 = a21 * a21 + a22 * a22 + 1.0
-    if q11 > 0.0 or q22 > 0.0:
+    if (q11 > 0.0 or q22 > 0.0) and v_dof <= 0.0:
+        d11, d12, d22 = q11, q12, q22  # circumellipse(Q, Q/3) is Q (an aperture-shaped blur)
+    elif q11 > 0.0 or q22 > 0.0:
         # 1e-9: keeps B positive definite for a node that projects to a line at focus
         b11, b12, b22 = v_dof + q11 / 3.0 + 1e-9, q12 / 3.0, v_dof + q22 / 3.0 + 1e-9
         d11, d12, d22 = circumellipse_general(q11, q12, q22, b11, b12, b22)
@@ -214,7 +216,7 @@ def exponent(dx, dy, c11, c12, c22):
 
 @shared
 def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by, near,
-                   coc_k, inv_focus, lod_cov, cutoff, z_margin, cull_backfaces):
+                   coc_k, inv_focus, lod_cov, cutoff, z_margin, cull_backfaces, disc):
     """Project one surfel; everything but the kernel's pixel sum.
 
     p_world, n_world, t_world: 3-tuples (t_world = (0, 0, 0) for a circular surfel);
@@ -223,8 +225,11 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     camera_from_world matrix; lod_cov: 6-tuple (xx, xy, xz, yy, yz, zz), the world
     covariance of the LOD filter V^{q,l} (zeros for a surfel).
 
+    disc: the aperture's shape is drawn (bokeh.py): W is then the unblurred kernel and
+    ``radius`` the aperture's radius in pixels; else W carries the paper's Gaussian blur.
+
     Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r, f11, f12, f22,
-    grad_z): ok
+    grad_z, radius): ok
     is False for a culled surfel (behind the near plane, or a back face when culling is on);
     F = (f11, f12, f22) is the unblurred disk J V^r J^T + J V^{q,l} J^T, the splat as a
     pinhole sees it, without the prefilter; grad_z the depth change per pixel across the
@@ -235,12 +240,12 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     pz = view[8] * p_world[0] + view[9] * p_world[1] + view[10] * p_world[2] + view[11]
     depth = -pz
     if depth <= near:
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
     nx = view[0] * n_world[0] + view[1] * n_world[1] + view[2] * n_world[2]
     ny = view[4] * n_world[0] + view[5] * n_world[1] + view[6] * n_world[2]
     nz = view[8] * n_world[0] + view[9] * n_world[1] + view[10] * n_world[2]
     if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:  # normal points away from the eye
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
     if t_world[0] == 0.0 and t_world[1] == 0.0 and t_world[2] == 0.0:
         tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
     else:
@@ -262,7 +267,17 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     su, sv = 0.5 * ru, 0.5 * rv
     coc_r = coc_radius_px(depth, coc_k, inv_focus)
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
-    w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, dof_variance(coc_r))
+    radius = 0.0  # the aperture's radius in the kernel (bokeh.py); 0: the paper's Gaussian
+    if disc:
+        # the Gaussian part is the unblurred kernel (a node: with its filter Q, at least);
+        # the aperture takes the rest. A node's surfels, each blurred by the disc C_r, spread
+        # by Q/3 more: its disc shrinks so that the second moments match,
+        # R^2/4 + Q = C_r^2/4 + Q/3 per axis (trace-averaged)
+        w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, 0.0)
+        radius = math.sqrt(max(coc_r * coc_r - (4.0 / 3.0) * (q11 + q22), 0.0))
+    else:
+        w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22,
+                                        dof_variance(coc_r))
     # the unblurred disk (what a pinhole sees, without the prefilter: a far sub-pixel disk
     # must not claim pixels beyond its own surface): the basis and a node's own filter
     f11, f12, f22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
@@ -286,7 +301,7 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
         gy = (tuz * j12 - tvz * j11) / det_s
         grad_z = math.sqrt(gx * gx + gy * gy)
     return (True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r,
-            f11, f12, f22, grad_z)
+            f11, f12, f22, grad_z, radius)
 
 
 # -- pixel footprint of a truncated kernel ----------------------------------------------
@@ -317,15 +332,30 @@ def row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1):
 
 
 @shared
-def kernel_bbox(mx, my, w11, w22, cutoff):
-    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the kernel truncated at cutoff."""
-    hx = math.sqrt(2.0 * cutoff * w11)
-    hy = math.sqrt(2.0 * cutoff * w22)
+def kernel_bbox(mx, my, w11, w22, cutoff, radius):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the kernel truncated at cutoff,
+    widened by the aperture's radius (0 for the paper's Gaussian)."""
+    hx = math.sqrt(2.0 * cutoff * w11) + radius
+    hy = math.sqrt(2.0 * cutoff * w22) + radius
     x0 = math.floor(max(mx - hx - 0.5, -COORD_LIMIT))
     x1 = math.ceil(min(mx + hx - 0.5, COORD_LIMIT))
     y0 = math.floor(max(my - hy - 0.5, -COORD_LIMIT))
     y1 = math.ceil(min(my + hy - 0.5, COORD_LIMIT))
     return int(x0), int(x1), int(y0), int(y1)
+
+
+@shared
+def disc_row_range(i, mx, my, reach, x0, x1):
+    """Inclusive columns (j0, j1) of row i within ``reach`` pixels of the centre (an aperture
+    kernel's support lies inside the circle of its radius plus its Gaussian's cutoff reach)."""
+    dy = i + 0.5 - my
+    h2 = reach * reach - dy * dy
+    if h2 < 0.0:
+        return 1, 0
+    h = math.sqrt(h2)
+    j0 = math.floor(max(mx - h - 0.5, -COORD_LIMIT))
+    j1 = math.ceil(min(mx + h - 0.5, COORD_LIMIT))
+    return max(int(j0), x0), min(int(j1), x1)
 
 
 @shared

@@ -18,14 +18,16 @@ import math
 import numba
 import numpy as np
 
-from .ewa import kernel_bbox, kernel_pixel_sum, project_surfel
+from .bokeh import aperture_pixel_sum, edge_mix
+from .ewa import kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
 (MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC, X0, X1,
- F11, F12, F22, GRAD_Z, FLOOR) = range(21)
-N_FIELDS = 21
+ F11, F12, F22, GRAD_Z, FLOOR, RAD, REACH, MIX) = range(24)
+N_FIELDS = 24
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
                 "red", "green", "blue", "alpha", "coc_radius_px", "x0", "x1",
-                "f11", "f12", "f22", "grad_z", "floor")
+                "f11", "f12", "f22", "grad_z", "floor", "aperture_radius_px", "reach_px",
+                "edge_mix")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -37,7 +39,8 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 @numba.njit(cache=True, nogil=True, parallel=True)
 def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
                    ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-                   z_margin, cull_backfaces, exact_norm, floor, out, bbox, visible):
+                   z_margin, cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox,
+                   visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
 
     positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
@@ -52,16 +55,19 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     for k in numba.prange(n):
         project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                      cull_backfaces, exact_norm, floor, out, bbox, visible)
+                      cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox,
+                      visible)
 
 
-# inlined at numba's level, like gather_node: no per-splat call passing every array
-@numba.njit(cache=True, nogil=True, inline="always")
+# not inline="always": numba's inliner refuses a function with this many arguments
+# ("Calling a closure with *args"); LLVM inlines the call within the jitted loop anyway
+@numba.njit(cache=True, nogil=True)
 def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                  cull_backfaces, exact_norm, floor, out, bbox, visible):
+                  cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox, visible):
     """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
-    e^-c to taper LOD nodes' kernels, else 0). Shared with the CUDA backend, one thread per splat."""
+    e^-c to taper LOD nodes' kernels, else 0; disc: draw the aperture's shape, a polygon of
+    ``blades`` (N, 2), the unit normals of its edges, or a disc if (0, 2), with ``bokeh.aperture_table``). Shared with the CUDA backend, one thread per splat."""
     n = positions.shape[0]
     elliptical = tangents.shape[0] == n
     has_lod = lod_cov.shape[0] == n
@@ -76,12 +82,12 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
                np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
     (ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r, f11, f12, f22,
-     grad_z) = project_surfel(
+     grad_z, radius) = project_surfel(
         p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
-        ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces)
+        ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces, disc)
     if not ok:
         return
-    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
+    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff, radius)
     cx0, cx1 = max(x0, 0), min(x1, width - 1)
     cy0, cy1 = max(y0, 0), min(y1, height - 1)
     if cx0 > cx1 or cy0 > cy1:
@@ -93,7 +99,14 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     node = has_lod and lod_cov[k, 0] + lod_cov[k, 3] + lod_cov[k, 5] > 0.0
     floor_k = floor if node else 0.0
     norm = 0.0
-    if exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
+    reach = radius + math.sqrt(2.0 * cutoff * max_eigenvalue(w11, w12, w22))
+    mix = edge_mix(radius, w11, w22)
+    if radius > 0.0:
+        # an aperture kernel has no closed-form mass: always its sum over the pixels
+        norm = aperture_pixel_sum(mx, my, c11, c12, c22, radius, mix, reach, blades, table,
+                                  math.sqrt(2.0 * cutoff), x0, x1, y0, y1)
+        floor_k = 0.0  # the table is tapered already
+    elif exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
         norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor_k)
     if norm > 0.0:
         amp = area_px / norm
@@ -123,6 +136,9 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     out[k, F22] = f11 * f_inv
     out[k, GRAD_Z] = grad_z
     out[k, FLOOR] = floor_k
+    out[k, RAD] = radius
+    out[k, REACH] = reach
+    out[k, MIX] = mix
     bbox[k, 0] = cx0
     bbox[k, 1] = cx1
     bbox[k, 2] = cy0
