@@ -28,7 +28,7 @@ def lights(n: int = 7) -> ds.Surfels:
     rng = np.random.default_rng(3)
     pos = np.stack([np.linspace(-1.2, 1.2, n), 0.35 + 0.25 * rng.uniform(-1, 1, n),
                     np.full(n, -2.0)], axis=1)
-    cols = np.array([[1.0, 0.8, 0.4], [0.5, 0.8, 1.0], [1.0, 0.5, 0.6]])[np.arange(n) % 3] * 4
+    cols = np.array([[1.0, 0.8, 0.4], [0.5, 0.8, 1.0], [1.0, 0.5, 0.6]])[np.arange(n) % 3] * 25
     return ds.Surfels(positions=pos, normals=np.tile([0.0, 0.0, 1.0], (n, 1)),
                       radius=np.full(n, 0.03), colors=cols)
 
@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     floor = textured_plane(256, 4.0, center=(0.0, -0.2, -1.0))
     floor = ds.Surfels(positions=floor.positions, normals=floor.normals, radius=floor.radius,
-                       colors=floor.colors * 0.15)
+                       colors=floor.colors * 0.08)
     scene = concatenate([floor, lights()])
     h = args.size
     cam = ds.Camera(eye=(0.0, 0.5, 2.5), target=(0.0, 0.3, -2.0), width=h, height=h, fov_y=40)

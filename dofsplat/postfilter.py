@@ -62,7 +62,8 @@ def coc_radius_map(depth: np.ndarray, coc_k: float, inv_focus: float,
 
 
 def postfilter(image: np.ndarray, depth: np.ndarray, coc_k: float, inv_focus: float, *,
-               depth_test: bool = True, max_radius: float = MAX_RADIUS_PX) -> np.ndarray:
+               depth_test: bool = True, max_radius: float = MAX_RADIUS_PX,
+               blades: np.ndarray | None = None) -> np.ndarray:
     """Blur a pinhole image by the CoC of its depth buffer (see the module notes).
 
     image: (H, W, C) float, linear (C = 4: RGB composited over the background, alpha)
@@ -70,6 +71,9 @@ def postfilter(image: np.ndarray, depth: np.ndarray, coc_k: float, inv_focus: fl
     coc_k, inv_focus: the lens's (K, 1/P), C_r = K |1/U - 1/P| pixels
     depth_test: limit what lies behind a pixel to that pixel's CoC (module notes)
     max_radius: CoC radii above this many pixels are clamped (with a warning)
+    blades: (N, 2) unit edge normals of a polygonal aperture (``splat.bokeh.blade_normals``):
+            each pixel spreads over that polygon of circumradius r_q, turned by 180 degrees
+            before the focal plane, instead of a disc
 
     Returns (H, W, C) float32.
     """
@@ -83,7 +87,8 @@ def postfilter(image: np.ndarray, depth: np.ndarray, coc_k: float, inv_focus: fl
     _warn_if_clamped(depth, coc_k, inv_focus, max_radius)
     search = _search_radius(radius)
     out = np.empty_like(image)
-    _gather(image, depth, radius, search, bool(depth_test), out)
+    blades = np.zeros((0, 2)) if blades is None else np.ascontiguousarray(blades, np.float64)
+    _gather(image, depth, radius, search, bool(depth_test), blades, float(inv_focus), out)
     return out
 
 
@@ -104,8 +109,11 @@ def render_postfilter(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens
         coc_k, inv_focus = 0.0, 0.0
     else:
         coc_k, inv_focus = lens.coc_coefficients(camera)
+    from .render import aperture_shape
+
+    blades = aperture_shape(lens, settings)[1]  # the lens's polygon, if it has blades
     image = postfilter(pinhole.image, pinhole.depth, coc_k, inv_focus, depth_test=depth_test,
-                       max_radius=max_radius)
+                       max_radius=max_radius, blades=blades)
     filter_ms = (time.perf_counter() - t) * 1000.0
     stats = dict(pinhole.stats, method="postfilter", filter_ms=filter_ms,
                  max_coc_px=float(coc_radius_map(pinhole.depth, coc_k, inv_focus,
@@ -130,17 +138,40 @@ def _search_radius(radius: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _gather(image, depth, radius, search, depth_test, out):
+def _gather(image, depth, radius, search, depth_test, blades, inv_focus, out):
     h, w = depth.shape
     for i in numba.prange(h):
         row = np.int64(i)  # prange's index may be unsigned; the offsets below are signed
         acc = np.empty(image.shape[2], np.float64)  # float64 sums, one scratch per row
         for j in range(w):
-            _gather_pixel(image, depth, radius, search, depth_test, row, j, acc, out)
+            _gather_pixel(image, depth, radius, search, depth_test, blades, inv_focus, row, j,
+                          acc, out)
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather_pixel(image, depth, radius, search, depth_test, i, j, acc, out):
+def aperture_distance(dx, dy, blades, flip):
+    """|(dx, dy)| for a disc; for a polygon the gauge whose level r is the polygon of
+    circumradius r, max_i(n_i . d) / cos(pi/N), turned over when flip."""
+    n = blades.shape[0]
+    if n == 0:
+        return math.sqrt(dx * dx + dy * dy)
+    best = -1e300
+    for k in range(n):
+        best = max(best, flip * (blades[k, 0] * dx + blades[k, 1] * dy))
+    return best / math.cos(math.pi / n)
+
+
+@numba.njit(cache=True, nogil=True)
+def aperture_area(r, blades):
+    """Area of the aperture's image of radius r: pi r^2, or the N-gon's (N/2) r^2 sin(2 pi/N)."""
+    n = blades.shape[0]
+    if n == 0:
+        return math.pi * r * r
+    return 0.5 * n * r * r * math.sin(2.0 * math.pi / n)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_pixel(image, depth, radius, search, depth_test, blades, inv_focus, i, j, acc, out):
     """out[i, j] = sum_q w_pq c_q / sum_q w_pq over the pixels q that reach (i, j)."""
     h, w, nc = image.shape
     zp = depth[i, j]
@@ -153,10 +184,12 @@ def _gather_pixel(image, depth, radius, search, depth_test, i, j, acc, out):
             rq = radius[i + di, j + dj]
             if depth_test and depth[i + di, j + dj] > zp:
                 rq = min(rq, rp)
-            cov = rq + 0.5 - math.sqrt(di * di + dj * dj)
+            # q spreads onto p = q + (dj, di); before the focal plane its polygon is turned
+            flip = -1.0 if depth[i + di, j + dj] * inv_focus < 1.0 else 1.0
+            cov = rq + 0.5 - aperture_distance(-dj, -di, blades, flip)
             if cov <= 0.0:
                 continue
-            wq = min(cov, 1.0) / (math.pi * (rq * rq + 1.0 / 12.0))
+            wq = min(cov, 1.0) / (aperture_area(rq, blades) + math.pi / 12.0)
             wsum += wq
             for c in range(nc):
                 acc[c] += wq * image[i + di, j + dj, c]
@@ -165,7 +198,7 @@ def _gather_pixel(image, depth, radius, search, depth_test, i, j, acc, out):
 
 
 def postfilter_slow(image, depth, coc_k, inv_focus, *, depth_test=True,
-                    max_radius=MAX_RADIUS_PX) -> np.ndarray:
+                    max_radius=MAX_RADIUS_PX, blades=None) -> np.ndarray:
     """numpy twin of :func:`postfilter`: the module's formulas, one offset at a time."""
     image = np.asarray(image, np.float64)
     depth = np.asarray(depth, np.float64)
@@ -183,8 +216,15 @@ def postfilter_slow(image, depth, coc_k, inv_focus, *, depth_test=True,
             rq = r_p[sl]
             if depth_test:
                 rq = np.where(z_p[sl] > depth, np.minimum(rq, r), rq)
-            cov = np.clip(rq + 0.5 - math.hypot(di, dj), 0.0, 1.0)
-            wq = np.where(cov > 0, cov / (math.pi * (rq * rq + 1.0 / 12.0)), 0.0)
+            if blades is None or len(blades) == 0:
+                dist, area = math.hypot(di, dj), math.pi * rq * rq
+            else:  # the polygon's gauge of the offset q -> p = (-dj, -di), turned over near
+                flip = np.where(z_p[sl] * inv_focus < 1, -1.0, 1.0)
+                dist = np.max([flip * (n[0] * -dj + n[1] * -di) for n in blades], axis=0)
+                dist = dist / math.cos(math.pi / len(blades))
+                area = 0.5 * len(blades) * rq * rq * math.sin(2 * math.pi / len(blades))
+            cov = np.clip(rq + 0.5 - dist, 0.0, 1.0)
+            wq = np.where(cov > 0, cov / (area + math.pi / 12.0), 0.0)
             wsum += wq
             acc += wq[..., None] * img_p[sl]
     return (acc / wsum[..., None]).astype(np.float32)

@@ -124,6 +124,8 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         radius = 0.0
         if disc:  # the aperture's shape: the Gaussian keeps the unblurred kernel (bokeh.py)
             radius = math.sqrt(max(coc_r ** 2 - 4 / 3 * np.trace(Q), 0.0))
+            if u * inv_focus < 1:
+                radius = -radius  # before the focal plane: the aperture's image turned over
             v_dof = 0.0
         if disc:
             blur = Q  # circumellipse(Q, Q/3) is Q itself
@@ -132,7 +134,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur
-        hx, hy = math.sqrt(2 * c * W[0, 0]) + radius, math.sqrt(2 * c * W[1, 1]) + radius
+        hx, hy = math.sqrt(2 * c * W[0, 0]) + abs(radius), math.sqrt(2 * c * W[1, 1]) + abs(radius)
         x0, x1 = math.floor(m[0] - hx - 0.5), math.ceil(m[0] + hx - 0.5)
         y0, y1 = math.floor(m[1] - hy - 0.5), math.ceil(m[1] + hy - 0.5)
         cx0, cx1 = max(x0, 0), min(x1, camera.width - 1)
@@ -143,9 +145,9 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         floor = taper if np.trace(Sq) > 0 else 0.0
         area_px = abs(np.linalg.det(J)) * area[k]
         total = 0.0
-        support = radius + math.sqrt(2 * c * np.linalg.eigvalsh(W).max())
+        support = abs(radius) + math.sqrt(2 * c * np.linalg.eigvalsh(W).max())
         mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
-        if radius > 0:
+        if radius != 0:
             floor = 0.0
             total = float(aperture_reference(m, W, radius, mix, support, blades, c,
                                              x0, x1, y0, y1).sum())
@@ -221,14 +223,14 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             continue
         Wi = np.array([[s[C11], s[C12]], [s[C12], s[C22]]])
         x0, x1, y0, y1 = bbox[k]
-        if s[RAD] > 0:
+        if s[RAD] != 0:
             kern = aperture_reference(s[[MX, MY]], np.linalg.inv(Wi), s[RAD], s[MIX], s[REACH],
                                       blades, cutoff, x0, x1, y0, y1)
         else:
             q = _exponents(s[[MX, MY]], Wi, x0, x1, y0, y1)
             kern = np.where(q < cutoff, np.exp(-q) - s[FLOOR], 0.0)
             kern[q >= cutoff] = -1.0  # outside: no fragment (a tapered edge may be 0 inside)
-        for i, j in zip(*np.nonzero(kern > 0 if s[RAD] > 0 else kern >= 0)):
+        for i, j in zip(*np.nonzero(kern > 0 if s[RAD] != 0 else kern >= 0)):
             w = s[AMP] * kern[i, j]
             frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
                     s[ZLO], s[ZHI]]
@@ -258,12 +260,14 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     d = np.stack([xs - m[0], ys - m[1]], axis=-1)
     r = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-300)
     n = d / r[..., None]
+    flip = -1.0 if radius < 0 else 1.0  # before the focal plane the polygon is turned over
+    radius = abs(radius)
     s_gauss = np.sqrt(np.einsum("...i,ij,...j->...", n, np.linalg.inv(W), n))
     s_edge = 1 / np.sqrt(np.einsum("...i,ij,...j->...", n, W, n))
     scale = s_gauss * (s_edge / s_gauss) ** mix
     rad = np.full(r.shape, radius)
     if len(blades):
-        rad = radius * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=-1)
+        rad = radius * math.cos(math.pi / len(blades)) / np.max(flip * n @ blades.T, axis=-1)
     b = rad * scale
     u = r * scale - b
     value = table(np.stack([np.minimum(b, B_MAX), np.clip(u, -B_MAX, u_c)], axis=-1))

@@ -123,3 +123,22 @@ def test_polygon_samples_are_uniform():
 def test_bad_aperture_shapes_are_errors(bad):
     with pytest.raises(ds.DofsplatError):
         ds.ThinLens(focus_distance=1.0, aperture=0.1, **bad)
+
+
+@pytest.mark.parametrize("focus, aperture", [(1.0, 0.4), (4.0, 0.8)])
+def test_polygon_turns_over_before_the_focal_plane(focus, aperture):
+    """A 5-blade aperture (not symmetric under a half turn) against the reference's 400
+    lens samples of the same polygon: behind the focal plane (focus 1, the surfel at 2) the
+    polygon is upright, before it (focus 4) turned by 180 degrees, as through a real lens.
+    Measured correlations 0.999 with the reference, 0.941 with the other orientation."""
+    from dofsplat.reference import render_reference
+
+    s = ds.Surfels(positions=[[0, 0, 0]], normals=[[0, 0, 1]], radius=[0.01], colors=[[1, 1, 1]])
+    cam = ds.Camera(eye=(0, 0, 2), target=(0, 0, 0), width=96, height=96, fov_y=30)
+    lens = ds.ThinLens(focus_distance=focus, aperture=aperture, blades=5)
+    unlit = ds.RenderSettings(shading="none", lod=False)
+    ours = ds.render(s, cam, lens, unlit).image[..., 3]
+    ref = render_reference(s, cam, lens, unlit, samples=400, progress=False).image[..., 3]
+    corr = np.corrcoef(ours.ravel(), ref.ravel())[0, 1]
+    turned = np.corrcoef(ours[::-1, ::-1].ravel(), ref.ravel())[0, 1]
+    assert corr > 0.99 and corr > turned + 0.03

@@ -25,12 +25,16 @@ def random_frame(h=24, w=30, seed=0):
     return image, depth
 
 
-@pytest.mark.parametrize("depth_test", [True, False])
-def test_kernel_matches_its_numpy_twin(depth_test):
+@pytest.mark.parametrize("depth_test, blades", [(True, 0), (False, 0), (True, 5), (False, 6)])
+def test_kernel_matches_its_numpy_twin(depth_test, blades):
+    from dofsplat.splat.bokeh import blade_normals
+
     image, depth = random_frame()
     coc_k, inv_focus = 6.0, 1.0 / 1.5  # radii from 0.5 to 8 px
-    fast = postfilter(image, depth, coc_k, inv_focus, depth_test=depth_test)
-    slow = postfilter_slow(image, depth, coc_k, inv_focus, depth_test=depth_test)
+    normals = blade_normals(blades, 10.0)
+    fast = postfilter(image, depth, coc_k, inv_focus, depth_test=depth_test, blades=normals)
+    slow = postfilter_slow(image, depth, coc_k, inv_focus, depth_test=depth_test,
+                           blades=normals)
     np.testing.assert_allclose(fast, slow, atol=2e-6)  # float32 output of float64 sums
 
 
@@ -140,3 +144,21 @@ def test_cli_method_postfilter(tmp_path, capsys):
     assert math.isfinite(record["max_coc_px"])
     assert main(["demo", "--size", "64x48", "--method", "blur", "-o", str(out)]) == 2
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_polygon_postfilter_spreads_a_point_into_a_hexagon():
+    """One bright pixel at a CoC of 12 px through 6 blades: a hexagon, whose radius at its
+    edges is cos 30 = 0.87 of that at its vertices, and whose weights sum as the disc's."""
+    from dofsplat.splat.bokeh import blade_normals
+
+    image = np.zeros((41, 41, 4), np.float32)
+    image[20, 20] = 1.0
+    depth = np.full((41, 41), 3.0, np.float32)
+    coc_k, inv_focus = 24.0, 1.0  # r = 24 |1/3 - 1| = 16 px
+    depth[20, 20] = 2.0  # r = 12 px for the bright pixel (behind: no depth-test cut)
+    out = postfilter(image, depth, coc_k, inv_focus, blades=blade_normals(6, 0.0))[..., 0]
+    lit = out > 0.5 * out[20, 20]
+    ys, xs = np.nonzero(lit)
+    vertex = np.abs(xs - 20).max()  # a vertex on the x axis at rotation 0
+    edge = np.abs(ys - 20).max()  # an edge across the y axis
+    assert edge / vertex == pytest.approx(math.cos(math.pi / 6), abs=0.1)

@@ -53,7 +53,7 @@ from ..raster.abuffer import (MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE, front_
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX, MY,
-                             N_FIELDS, RAD, REACH,
+                             N_FIELDS, N_RASTER_FIELDS, RAD, REACH,
                              RED, X0, X1, ZHI, ZLO, project_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
@@ -343,7 +343,8 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
                u_c):
     """One block per tile, one thread per pixel: A-buffer insert of the tile's fragments in
     splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
-    batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float64)
+    # the raster's fields only: 256 x 19 x 8 bytes = 38 KB of the 48 KB a block may hold
+    batch = cuda.shared.array((PIXELS, N_RASTER_FIELDS), numba.float64)
     rows = cuda.shared.array((PIXELS, 2), numba.int32)
     counters = cuda.shared.array(2, numba.int64)
     acc = cuda.local.array((1, MAX_SURFACES, N_ACC), numba.float64)
@@ -364,14 +365,14 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         # the next PIXELS splats of the tile into shared memory, one per thread
         if base + tid < end:
             k = ids[base + tid]
-            for f in range(N_FIELDS):
+            for f in range(N_RASTER_FIELDS):
                 batch[tid, f] = splats[k, f]
             rows[tid, 0] = bbox[k, 2]
             rows[tid, 1] = bbox[k, 3]
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
-                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0 and batch[s, RAD] > 0.0:
+                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0 and batch[s, RAD] != 0.0:
                     # the aperture's shape (splat/bokeh.py)
                     dx, dy = j + 0.5 - batch[s, MX], i + 0.5 - batch[s, MY]
                     if batch[s, X0] <= j <= batch[s, X1] \

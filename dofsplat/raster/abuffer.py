@@ -416,7 +416,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
             radius = splats[k, RAD]
-            if radius > 0.0:
+            if radius != 0.0:
                 # the aperture's shape (splat/bokeh.py): a table look-up per fragment
                 det = c11 * c22 - c12 * c12
                 w11, w12, w22 = c22 / det, -c12 / det, c11 / det

@@ -126,7 +126,7 @@ def table_value(u, b, table, u_c):
 @shared
 def edge_mix(radius, w11, w22):
     """lambda in [0, 1): how far a kernel is a wide aperture (1) rather than a Gaussian (0)."""
-    r2 = radius * radius
+    r2 = radius * radius  # (radius may be negative: signed as in aperture_kernel)
     return r2 / (r2 + 0.5 * (w11 + w22))
 
 
@@ -134,13 +134,16 @@ def edge_mix(radius, w11, w22):
 def aperture_kernel(q, dx, dy, radius, w11, w12, w22, mix, normals, table, u_c):
     """The kernel at offset (dx, dy) from the splat's centre (module notes).
 
-    q = 1/2 x^T W^-1 x; (w11, w12, w22) = W; mix = ``edge_mix``: the scale along the offset's
+    q = 1/2 x^T W^-1 x; (w11, w12, w22) = W; radius < 0: the aperture turned by 180 degrees
+    (a point before the focal plane); mix = ``edge_mix``: the scale along the offset's
     direction n moves from sqrt(n^T W^-1 n) (the Gaussian, exact at R = 0) to
     1 / sqrt(n^T W n) (the Gaussian's profile across a wide aperture's edge) as R grows.
     """
     r2 = dx * dx + dy * dy
     if r2 <= 0.0:
-        return 1.0 if radius > 0.0 else table_value(-B_MAX, 0.0, table, u_c)
+        return 1.0 if radius != 0.0 else table_value(-B_MAX, 0.0, table, u_c)
+    if radius < 0.0:
+        radius, dx, dy = -radius, -dx, -dy
     rr = math.sqrt(r2)
     s_gauss = math.sqrt(2.0 * q / r2)  # sqrt(n^T W^-1 n)
     s_edge = rr / math.sqrt(w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy)  # 1/sqrt(n^T W n)

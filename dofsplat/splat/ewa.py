@@ -226,7 +226,8 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     covariance of the LOD filter V^{q,l} (zeros for a surfel).
 
     disc: the aperture's shape is drawn (bokeh.py): W is then the unblurred kernel and
-    ``radius`` the aperture's radius in pixels; else W carries the paper's Gaussian blur.
+    |radius| the aperture's radius in pixels, negative before the focal plane (the image of
+    the aperture turned by 180 degrees); else W carries the paper's Gaussian blur.
 
     Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r, f11, f12, f22,
     grad_z, radius): ok
@@ -275,6 +276,8 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
         # R^2/4 + Q = C_r^2/4 + Q/3 per axis (trace-averaged)
         w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, 0.0)
         radius = math.sqrt(max(coc_r * coc_r - (4.0 / 3.0) * (q11 + q22), 0.0))
+        if depth * inv_focus < 1.0:
+            radius = -radius  # before the focal plane the aperture's image is upside down
     else:
         w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22,
                                         dof_variance(coc_r))

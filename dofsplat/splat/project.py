@@ -21,13 +21,15 @@ import numpy as np
 from .bokeh import aperture_pixel_sum, edge_mix
 from .ewa import kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
-(MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, COC, X0, X1,
- F11, F12, F22, GRAD_Z, FLOOR, RAD, REACH, MIX) = range(24)
+# the rasteriser reads the first N_RASTER_FIELDS (the CUDA backend keeps a batch of them in
+# shared memory); the front pass and the visibility read the rest too
+(MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, X0, X1, FLOOR, RAD,
+ REACH, MIX, COC, F11, F12, F22, GRAD_Z) = range(24)
 N_FIELDS = 24
+N_RASTER_FIELDS = 19
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
-                "red", "green", "blue", "alpha", "coc_radius_px", "x0", "x1",
-                "f11", "f12", "f22", "grad_z", "floor", "aperture_radius_px", "reach_px",
-                "edge_mix")
+                "red", "green", "blue", "alpha", "x0", "x1", "floor", "aperture_radius_px",
+                "reach_px", "edge_mix", "coc_radius_px", "f11", "f12", "f22", "grad_z")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -87,7 +89,7 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces, disc)
     if not ok:
         return
-    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff, radius)
+    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff, abs(radius))
     cx0, cx1 = max(x0, 0), min(x1, width - 1)
     cy0, cy1 = max(y0, 0), min(y1, height - 1)
     if cx0 > cx1 or cy0 > cy1:
@@ -99,9 +101,9 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     node = has_lod and lod_cov[k, 0] + lod_cov[k, 3] + lod_cov[k, 5] > 0.0
     floor_k = floor if node else 0.0
     norm = 0.0
-    reach = radius + math.sqrt(2.0 * cutoff * max_eigenvalue(w11, w12, w22))
+    reach = abs(radius) + math.sqrt(2.0 * cutoff * max_eigenvalue(w11, w12, w22))
     mix = edge_mix(radius, w11, w22)
-    if radius > 0.0:
+    if radius != 0.0:
         # an aperture kernel has no closed-form mass: always its sum over the pixels
         norm = aperture_pixel_sum(mx, my, c11, c12, c22, radius, mix, reach, blades, table,
                                   math.sqrt(2.0 * cutoff), x0, x1, y0, y1)
