@@ -250,25 +250,25 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     splats = np.empty((n, N_FIELDS), np.float64)
     bbox = np.empty((n, 4), np.int32)
     visible = np.empty(n, np.bool_)
-    disc, blades, table = aperture_shape(lens, settings)
+    disc, blades, _, moments = aperture_shape(lens, settings)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
                    np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
-                   kernel_floor(settings), disc, blades, table, splats, bbox, visible)
+                   kernel_floor(settings), disc, blades, moments, splats, bbox, visible)
     return splats, bbox, visible
 
 
-def aperture_shape(lens, settings: RenderSettings) -> tuple[bool, np.ndarray, np.ndarray]:
-    """(disc, blades, table): whether kernels carry the aperture's shape (splat/bokeh.py),
-    the (N, 2) edge normals of a polygonal aperture ((0, 2) for a round one), and the table
-    of the Gaussian-disc convolution for this cutoff."""
-    from .splat.bokeh import aperture_table, blade_normals
+def aperture_shape(lens, settings: RenderSettings):
+    """(disc, blades, table, moments): whether kernels carry the aperture's shape
+    (splat/bokeh.py), the (N, 2) edge normals of a polygonal aperture ((0, 2) for a round
+    one), the table of the Gaussian-disc convolution for this cutoff and its moments."""
+    from .splat.bokeh import aperture_moments, aperture_table, blade_normals
 
     disc = lens is not None and settings.dof and getattr(lens, "bokeh", "gaussian") == "disc"
     blades = blade_normals(lens.blades, lens.blade_rotation) if disc else np.zeros((0, 2))
-    return disc, blades, aperture_table(settings.cutoff)
+    return disc, blades, aperture_table(settings.cutoff), aperture_moments(settings.cutoff)
 
 
 def kernel_floor(settings: RenderSettings) -> float:
@@ -325,7 +325,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     weight = np.empty((h, w), np.float32)
     background = np.asarray(settings.background, np.float64)
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
-    _, blades, table = aperture_shape(lens, settings)
+    _, blades, table, _ = aperture_shape(lens, settings)
     u_c = math.sqrt(2.0 * settings.cutoff)
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0

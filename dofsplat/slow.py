@@ -81,7 +81,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     n = len(surfels)
     c = float(settings.cutoff)
     taper = kernel_floor(settings)  # an LOD node's kernel is exp(-q) - e^-c inside the cutoff
-    disc, blades, _ = aperture_shape(lens, settings)
+    disc, blades, _, moments = aperture_shape(lens, settings)
     src = from_surfels(surfels)
     ru, rv, area = src.ru, src.rv, src.area
     view = camera.camera_from_world()
@@ -134,6 +134,9 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur
+        if radius ** 2 < 0.25 * np.linalg.eigvalsh(W).min():
+            W = W + radius ** 2 / 4 * np.eye(2)  # a small aperture: its moment-matched Gaussian
+            radius = 0.0
         hx, hy = math.sqrt(2 * c * W[0, 0]) + abs(radius), math.sqrt(2 * c * W[1, 1]) + abs(radius)
         x0, x1 = math.floor(m[0] - hx - 0.5), math.ceil(m[0] + hx - 0.5)
         y0, y1 = math.floor(m[1] - hy - 0.5), math.ceil(m[1] + hy - 0.5)
@@ -149,8 +152,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
         if radius != 0:
             floor = 0.0
-            total = float(aperture_reference(m, W, radius, mix, support, blades, c,
-                                             x0, x1, y0, y1).sum())
+            total = aperture_mass_reference(W, radius, mix, blades, moments)
         elif settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
             q = _exponents(m, Wi, x0, x1, y0, y1)
             total = float((np.exp(-q[q < c]) - floor).sum())
@@ -264,7 +266,7 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     radius = abs(radius)
     s_gauss = np.sqrt(np.einsum("...i,ij,...j->...", n, np.linalg.inv(W), n))
     s_edge = 1 / np.sqrt(np.einsum("...i,ij,...j->...", n, W, n))
-    scale = s_gauss * (s_edge / s_gauss) ** mix
+    scale = s_gauss + mix * (s_edge - s_gauss)
     rad = np.full(r.shape, radius)
     if len(blades):
         rad = radius * math.cos(math.pi / len(blades)) / np.max(flip * n @ blades.T, axis=-1)
@@ -274,6 +276,27 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     value = np.where(u < -B_MAX, 1.0, np.where(u >= u_c, 0.0, value))
     inside = (ys - 0.5 - m[1] + 0.5) ** 2 + (xs - m[0]) ** 2 <= reach ** 2
     return np.where(inside, value, 0.0)
+
+
+def aperture_mass_reference(W, radius, mix, blades, moments):
+    """bokeh.aperture_mass in numpy: the kernel's integral, (I1(b) + b I0(b)) / s^2 summed
+    over MASS_ANGLES directions (midpoint rule), I0 and I1 interpolated in b."""
+    from .splat.bokeh import B_MAX, MASS_ANGLES, TABLE_B
+
+    a = (np.arange(MASS_ANGLES) + 0.5) * 2 * math.pi / MASS_ANGLES
+    n = np.stack([np.cos(a), np.sin(a)], axis=1)
+    s_gauss = np.sqrt(np.einsum("ki,ij,kj->k", n, np.linalg.inv(W), n))
+    s_edge = 1 / np.sqrt(np.einsum("ki,ij,kj->k", n, W, n))
+    s = s_gauss + mix * (s_edge - s_gauss)
+    rad = np.full(MASS_ANGLES, abs(radius))
+    if len(blades):
+        rad = abs(radius) * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=1)
+    b = rad * s
+    grid = np.linspace(0, B_MAX, TABLE_B)
+    i0 = np.where(b >= B_MAX, moments[-1, 0] + (b - B_MAX), np.interp(b, grid, moments[:, 0]))
+    i1 = np.where(b >= B_MAX, moments[-1, 1] - (b * b - B_MAX ** 2) / 2,
+                  np.interp(b, grid, moments[:, 1]))
+    return float(np.sum((i1 + b * i0) / s ** 2) * 2 * math.pi / MASS_ANGLES)
 
 
 def merge_fraction_reference(d_front, d_back, opacity_front, merge):

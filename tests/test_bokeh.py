@@ -142,3 +142,27 @@ def test_polygon_turns_over_before_the_focal_plane(focus, aperture):
     corr = np.corrcoef(ours.ravel(), ref.ravel())[0, 1]
     turned = np.corrcoef(ours[::-1, ::-1].ravel(), ref.ravel())[0, 1]
     assert corr > 0.99 and corr > turned + 0.03
+
+
+@pytest.mark.parametrize("W, radius, blades", [(np.eye(2), 5.0, 0), (np.eye(2), 0.7, 0),
+                                               (np.diag([1.0, 9.0]), 5.0, 0),
+                                               ([[4.0, 3.0], [3.0, 4.0]], 10.0, 0),
+                                               (np.eye(2), 10.0, 6), (1.2 * np.eye(2), 40.0, 0)])
+def test_kernel_mass_equals_its_pixel_sum(W, radius, blades):
+    """The projection normalises an aperture kernel by its integral (angular quadrature of
+    the table's moments), not by a sum over its pixels: the two agree to 0.5 % (measured
+    3e-3 at R = 0.7, where the cutoff's edge is sampled coarsest; 1e-5 to 5e-4 elsewhere)."""
+    from dofsplat.splat.bokeh import aperture_mass, aperture_moments, aperture_pixel_sum
+
+    W = np.asarray(W, float)
+    Wi = np.linalg.inv(W)
+    normals = blade_normals(blades, 0.0)
+    mix = edge_mix(radius, W[0, 0], W[1, 1])
+    mass = aperture_mass(radius, W[0, 0], W[0, 1], W[1, 1], mix, normals,
+                         aperture_moments(CUTOFF))
+    reach = radius + math.sqrt(2 * CUTOFF * np.linalg.eigvalsh(W).max())
+    for mx, my in ((100.0, 100.0), (100.3, 100.7)):
+        total = aperture_pixel_sum(mx, my, Wi[0, 0], Wi[0, 1], Wi[1, 1], radius, mix, reach,
+                                   normals, aperture_table(CUTOFF), math.sqrt(2 * CUTOFF),
+                                   0, 200, 0, 200)
+        assert mass == pytest.approx(total, rel=5e-3)

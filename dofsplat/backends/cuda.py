@@ -226,12 +226,13 @@ def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shini
 @cuda.jit
 def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
              by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
-             exact_norm, floor, disc, blades, table, out, bbox, visible):
+             exact_norm, floor, disc, blades, moments, out, bbox, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
         _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                        ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                       cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox, visible)
+                       cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
+                       visible)
 
 
 @cuda.jit
@@ -618,13 +619,13 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings):
         view_t = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
         cutoff = float(settings.cutoff)
         floor = kernel_floor(settings)
-        disc, blades, table = aperture_shape(lens, settings)
+        disc, blades, _, moments = aperture_shape(lens, settings)
         _project[_blocks(n), THREADS](
             source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
             rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
             float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
             float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
-            bool(settings.exact_normalization), floor, disc, _upload(blades), _upload(table),
+            bool(settings.exact_normalization), floor, disc, _upload(blades), _upload(moments),
             splats, bbox, visible)
     return splats, bbox, visible
 
@@ -669,7 +670,7 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge,
     from ..raster.abuffer import OPAQUE
     from ..render import aperture_shape
 
-    _, blades, table = aperture_shape(lens, settings)
+    _, blades, table, _ = aperture_shape(lens, settings)
 
     w, h = camera.width, camera.height
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)

@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from ..splat.bokeh import aperture_kernel
+from ..splat.bokeh import aperture_row_start, aperture_value
 from ..splat.ewa import disc_row_range, exponent, row_pixel_range, row_start
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
                              GRAD_Z, GREEN, MIX, MX, MY, RAD, REACH, RED, X0, X1, ZHI, ZLO)
@@ -424,17 +424,22 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
                     j0, j1 = disc_row_range(i, mx, my, reach, x0, x1)
                     ja, jb = max(j0, px0), min(j1, px1)
-                    dy = i + 0.5 - my
+                    if ja > jb:
+                        continue
+                    q, dq, pw, dpw, dx, dy = aperture_row_start(ja, i, mx, my, c11, c12, c22,
+                                                                w11, w12, w22)
                     p = (i - py0) * TILE + (ja - px0)
-                    for j in range(ja, jb + 1):
-                        dx = j + 0.5 - mx
-                        q = exponent(dx, dy, c11, c12, c22)
-                        wk = aperture_kernel(q, dx, dy, radius, w11, w12, w22, mix, blades,
-                                             table, u_c)
+                    for _ in range(ja, jb + 1):
+                        wk = aperture_value(q, pw, dx, dy, radius, mix, blades, table, u_c)
                         if wk > 0.0:
                             overflows += insert_fragment(acc, cnt, p, amp * wk, r, g, b, a, d,
                                                          zlo, zhi)
                             frags += 1
+                        q += dq
+                        dq += c11
+                        pw += dpw
+                        dpw += 2.0 * w11
+                        dx += 1.0
                         p += 1
                 continue
             step2 = math.exp(-c11)

@@ -276,7 +276,14 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
         # R^2/4 + Q = C_r^2/4 + Q/3 per axis (trace-averaged)
         w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, 0.0)
         radius = math.sqrt(max(coc_r * coc_r - (4.0 / 3.0) * (q11 + q22), 0.0))
-        if depth * inv_focus < 1.0:
+        # an aperture much smaller than the kernel is, to O(b^4), the Gaussian of its second
+        # moment (b = R / sigma_min < 1/2: R^2/4 is under 1/16 of the kernel's variance)
+        lam_min = w11 + w22 - max_eigenvalue(w11, w12, w22)
+        if radius * radius < 0.25 * lam_min:
+            w11 += 0.25 * radius * radius
+            w22 += 0.25 * radius * radius
+            radius = 0.0
+        elif depth * inv_focus < 1.0:
             radius = -radius  # before the focal plane the aperture's image is upside down
     else:
         w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22,

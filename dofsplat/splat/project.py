@@ -18,7 +18,7 @@ import math
 import numba
 import numpy as np
 
-from .bokeh import aperture_pixel_sum, edge_mix
+from .bokeh import aperture_mass, edge_mix
 from .ewa import kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
 # the rasteriser reads the first N_RASTER_FIELDS (the CUDA backend keeps a batch of them in
@@ -41,7 +41,7 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 @numba.njit(cache=True, nogil=True, parallel=True)
 def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
                    ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-                   z_margin, cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox,
+                   z_margin, cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                    visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
 
@@ -57,7 +57,7 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     for k in numba.prange(n):
         project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                      cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox,
+                      cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                       visible)
 
 
@@ -66,10 +66,10 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
 @numba.njit(cache=True, nogil=True)
 def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                  cull_backfaces, exact_norm, floor, disc, blades, table, out, bbox, visible):
+                  cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
     """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
     e^-c to taper LOD nodes' kernels, else 0; disc: draw the aperture's shape, a polygon of
-    ``blades`` (N, 2), the unit normals of its edges, or a disc if (0, 2), with ``bokeh.aperture_table``). Shared with the CUDA backend, one thread per splat."""
+    ``blades`` (N, 2), the unit normals of its edges, or a disc if (0, 2), and ``bokeh.aperture_moments`` for the kernels' masses). Shared with the CUDA backend, one thread per splat."""
     n = positions.shape[0]
     elliptical = tangents.shape[0] == n
     has_lod = lod_cov.shape[0] == n
@@ -104,9 +104,9 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     reach = abs(radius) + math.sqrt(2.0 * cutoff * max_eigenvalue(w11, w12, w22))
     mix = edge_mix(radius, w11, w22)
     if radius != 0.0:
-        # an aperture kernel has no closed-form mass: always its sum over the pixels
-        norm = aperture_pixel_sum(mx, my, c11, c12, c22, radius, mix, reach, blades, table,
-                                  math.sqrt(2.0 * cutoff), x0, x1, y0, y1)
+        # an aperture kernel's mass by quadrature over the direction (bokeh.aperture_mass):
+        # at least a pixel wide, its sum over pixel centres is the integral to ~3e-3
+        norm = aperture_mass(radius, w11, w12, w22, mix, blades, moments)
         floor_k = 0.0  # the table is tapered already
     elif exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
         norm = kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor_k)
