@@ -123,12 +123,12 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         Q = G @ Sq @ G.T
         radius = 0.0
         if disc:  # the aperture's shape: the Gaussian keeps the unblurred kernel (bokeh.py)
-            radius = math.sqrt(max(coc_r ** 2 - 4 / 3 * np.trace(Q), 0.0))
+            radius = coc_r
             if u * inv_focus < 1:
                 radius = -radius  # before the focal plane: the aperture's image turned over
-            v_dof = 0.0
-        if disc:
-            blur = Q  # circumellipse(Q, Q/3) is Q itself
+            # a node: Q/3, and at least its filter Q where the disc's V^I is smaller
+            lam, vec = np.linalg.eigh(2 / 3 * Q - v_dof * np.eye(2))
+            blur = Q / 3 + vec @ np.diag(np.maximum(lam, 0.0)) @ vec.T
         elif np.any(Q != 0):
             blur = circumellipse_general_eig(Q, v_dof * np.eye(2) + Q / 3 + 1e-9 * np.eye(2))
         else:

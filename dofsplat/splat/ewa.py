@@ -270,12 +270,19 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
     radius = 0.0  # the aperture's radius in the kernel (bokeh.py); 0: the paper's Gaussian
     if disc:
-        # the Gaussian part is the unblurred kernel (a node: with its filter Q, at least);
-        # the aperture takes the rest. A node's surfels, each blurred by the disc C_r, spread
-        # by Q/3 more: its disc shrinks so that the second moments match,
-        # R^2/4 + Q = C_r^2/4 + Q/3 per axis (trace-averaged)
-        w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, 0.0)
-        radius = math.sqrt(max(coc_r * coc_r - (4.0 / 3.0) * (q11 + q22), 0.0))
+        # the Gaussian part is the unblurred kernel; the aperture is the disc C_r. A node's
+        # surfels, each blurred by that disc, spread by Q/3 (their positions' covariance):
+        # the node keeps the whole disc and a Gaussian of Q/3, and at least its filter Q
+        # where the blur is too small to cover the space between nodes (Section 6.2's
+        # circumellipse, the disc counted as its L2 Gaussian V^I): Q/3 + max(2Q/3 - V^I, 0)
+        w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
+        v_dof = dof_variance(coc_r)
+        e11, e12, e22 = circumellipse(2.0 / 3.0 * q11 - v_dof, 2.0 / 3.0 * q12,
+                                      2.0 / 3.0 * q22 - v_dof, 0.0)
+        w11 += q11 / 3.0 + e11
+        w12 += q12 / 3.0 + e12
+        w22 += q22 / 3.0 + e22
+        radius = coc_r
         # an aperture much smaller than the kernel is, to O(b^4), the Gaussian of its second
         # moment (b = R / sigma_min < 1/2: R^2/4 is under 1/16 of the kernel's variance)
         lam_min = w11 + w22 - max_eigenvalue(w11, w12, w22)
