@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from .camera import Camera
+from .splat.ewa import SMALL_APERTURE
 from .render import RenderSettings, coc_coefficients
 from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
@@ -134,7 +135,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         else:
             blur = v_dof * np.eye(2)
         W = J @ Vr @ J.T + np.eye(2) + blur
-        if radius ** 2 < 0.25 * np.linalg.eigvalsh(W).min():
+        if radius ** 2 < SMALL_APERTURE ** 2 * np.linalg.eigvalsh(W).min():
             W = W + radius ** 2 / 4 * np.eye(2)  # a small aperture: its moment-matched Gaussian
             radius = 0.0
         hx, hy = math.sqrt(2 * c * W[0, 0]) + abs(radius), math.sqrt(2 * c * W[1, 1]) + abs(radius)

@@ -22,10 +22,10 @@ import math
 import numba
 import numpy as np
 
-from ..splat.bokeh import aperture_row_start, aperture_value
-from ..splat.ewa import disc_row_range, exponent, row_pixel_range, row_start
+from ..splat.bokeh import aperture_row_start, aperture_value, support_conic
+from ..splat.ewa import exponent, row_pixel_range, row_span, row_start
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
-                             GRAD_Z, GREEN, MIX, MX, MY, RAD, REACH, RED, X0, X1, ZHI, ZLO)
+                             GRAD_Z, GREEN, MIX, MX, MY, RAD, RED, X0, X1, ZHI, ZLO)
 
 TILE = 16
 MAX_SURFACES = 8
@@ -420,9 +420,15 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 # the aperture's shape (splat/bokeh.py): a table look-up per fragment
                 det = c11 * c22 - c12 * c12
                 w11, w12, w22 = c22 / det, -c12 / det, c11 / det
-                mix, reach = splats[k, MIX], splats[k, REACH]
+                mix = splats[k, MIX]
+                b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
                 for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
-                    j0, j1 = disc_row_range(i, mx, my, reach, x0, x1)
+                    # the row's span over the support's bounding ellipse, a pixel wider
+                    lo, hi = row_span(i + 0.5 - my, b11, b12, b22, 0.5)
+                    if lo > hi:
+                        continue
+                    j0 = max(int(math.floor(mx + lo - 0.5)), x0)
+                    j1 = min(int(math.ceil(mx + hi - 0.5)), x1)
                     ja, jb = max(j0, px0), min(j1, px1)
                     if ja > jb:
                         continue

@@ -44,7 +44,11 @@ import math
 import numba
 import numpy as np
 
-from .ewa import disc_row_range, exponent, shared
+from .ewa import disc_row_range, exponent, row_span, shared
+
+# the per-fragment functions are inlined at numba's level, like the Gaussian's forward
+# differences: a call per fragment costs as much as the kernel
+shared_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 BOKEHS = ("disc", "gaussian")
 B_MAX = 8.0  # disc radius in Gaussian sigmas beyond which the edge profile no longer changes
@@ -112,7 +116,7 @@ def blade_normals(blades: int, rotation_deg: float) -> np.ndarray:
     return np.ascontiguousarray(np.stack([np.cos(a), -np.sin(a)], axis=1))
 
 
-@shared
+@shared_inline
 def direction_radius(dx, dy, rr, radius, normals):
     """The aperture's radius along the offset (dx, dy) of length rr > 0 (pixels)."""
     n = normals.shape[0]
@@ -126,7 +130,7 @@ def direction_radius(dx, dy, rr, radius, normals):
     return radius * math.cos(math.pi / n) / best
 
 
-@shared
+@shared_inline
 def table_value(u, b, table, u_c):
     """T(u, b) by bilinear interpolation in ``aperture_table`` (1 deep inside, 0 outside)."""
     if u >= u_c:
@@ -164,7 +168,7 @@ def aperture_kernel(q, dx, dy, radius, w11, w12, w22, mix, normals, table, u_c):
                           radius, mix, normals, table, u_c)
 
 
-@shared
+@shared_inline
 def aperture_value(q, p, dx, dy, radius, mix, normals, table, u_c):
     """``aperture_kernel`` from q = 1/2 x^T W^-1 x and p = x^T W x (both kept up to date
     along a row by forward differences): the scale along the offset's direction n moves
@@ -205,6 +209,35 @@ def aperture_pixel_sum(mx, my, c11, c12, c22, radius, mix, reach, normals, table
             dp += 2.0 * w11
             dx += 1.0
     return total
+
+
+@shared
+def support_conic(w11, w12, w22, radius, u_c):
+    """The conic (inverse variance) of an ellipse that contains an aperture kernel's
+    support: with W's eigenvalues l_i, the ellipse of semi-axes u_c sqrt(l_i) + |R| along
+    W's eigenvectors. The support lies where |x| < |R(n)| + u_c / s(n), and both scales
+    satisfy 1/s <= sqrt(n^T W n), so it lies in the disc of radius |R| plus the ellipse
+    u_c^2 W, which this ellipse contains. Rows are scanned over it (``row_span`` with
+    cutoff 1/2) instead of over the circle of ``reach``."""
+    half_tr = 0.5 * (w11 + w22)
+    diff = 0.5 * (w11 - w22)
+    rad = math.sqrt(diff * diff + w12 * w12)
+    l1 = half_tr + rad
+    l2 = max(half_tr - rad, 0.0)
+    # unit eigenvector of l1
+    vx, vy = l1 - w22, w12
+    n2 = vx * vx + vy * vy
+    if n2 < 1e-300:
+        vx, vy = 1.0, 0.0
+        if w22 > w11:
+            vx, vy = 0.0, 1.0
+    else:
+        inv = 1.0 / math.sqrt(n2)
+        vx, vy = vx * inv, vy * inv
+    a = u_c * math.sqrt(l1) + abs(radius)
+    b = u_c * math.sqrt(l2) + abs(radius)
+    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
+    return ia * vx * vx + ib * vy * vy, (ia - ib) * vx * vy, ia * vy * vy + ib * vx * vx
 
 
 @shared

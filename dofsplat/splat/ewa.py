@@ -20,6 +20,9 @@ shared = numba.njit(cache=True, nogil=True)
 LN4 = math.log(4.0)
 # 1 / (2 ln 4): the L2-best circular Gaussian variance for a uniform disc of radius 1 (eq. after 5.2)
 DOF_VARIANCE_FACTOR = 1.0 / (2.0 * LN4)
+# an aperture radius under this x the kernel's smallest sigma is drawn as the Gaussian of its
+# second moment (splat/bokeh.py)
+SMALL_APERTURE = 1.0
 
 
 @shared
@@ -283,10 +286,10 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
         w12 += q12 / 3.0 + e12
         w22 += q22 / 3.0 + e22
         radius = coc_r
-        # an aperture much smaller than the kernel is, to O(b^4), the Gaussian of its second
-        # moment (b = R / sigma_min < 1/2: R^2/4 is under 1/16 of the kernel's variance)
+        # an aperture no wider than the kernel is the Gaussian of its second moment, to an
+        # L1 distance under 0.01 (b = R / sigma_min < 1; docs/maths.md), and cheaper
         lam_min = w11 + w22 - max_eigenvalue(w11, w12, w22)
-        if radius * radius < 0.25 * lam_min:
+        if radius * radius < SMALL_APERTURE * SMALL_APERTURE * lam_min:
             w11 += 0.25 * radius * radius
             w22 += 0.25 * radius * radius
             radius = 0.0
