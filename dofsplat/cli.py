@@ -757,8 +757,8 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
         "so the time per frame hardly depends on the aperture (the paper's Section 6.2). "
-        "The picture stays the same (PSNR against --no-lod: about 55 dB on the plane of the "
-        "paper's Table 1, 42-44 dB on a scanned statue).")
+        "The picture stays the same (PSNR against --no-lod: 54-65 dB on the plane of the "
+        "paper's Table 1, 46-55 dB on a scanned statue).")
     lod.add_argument("--lod", action=argparse.BooleanOptionalAction, default=True,
                      help="select splats from the hierarchy (default: on); --no-lod splats "
                           "every surfel")
@@ -776,9 +776,10 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
                           "the blur, to see which levels the depth of field selects")
     lod.add_argument("--taper", action="store_true",
-                     help="taper LOD nodes' kernels to 0 at the cutoff, so that very large "
-                          "blurs show no hard-edged discs (an experiment: +1 to 1.5 dB on a "
-                          "contact scene, -7 dB against --no-lod on the plane; off by default)")
+                     help="with --bokeh gaussian: taper LOD nodes' Gaussians to 0 at the "
+                          "cutoff, so that very large blurs show no hard-edged discs (+1 to "
+                          "1.5 dB on a contact scene, -7 dB against --no-lod on the plane; "
+                          "off by default; the aperture's kernels are always tapered)")
     if not is_demo:
         lod.add_argument("--lod-cache", metavar="FILE|auto|off", default="auto",
                          help="where the hierarchy is kept between runs: auto (default) "
