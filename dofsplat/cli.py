@@ -707,7 +707,7 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     lens.add_argument("--blades", metavar="N", type=_blades, default=0,
                       help="straight aperture blades, 5 to 16: defocused highlights become "
                            "N-gons (default 0: round)")
-    lens.add_argument("--blade-rotation", metavar="DEG", type=_finite, default=0.0,
+    lens.add_argument("--blade-rotation", metavar="DEG", type=_number, default=0.0,
                       help="turn the polygon of --blades by DEG degrees, counterclockwise")
     focus = lens.add_mutually_exclusive_group()
     focus.add_argument("--focus", metavar="P", type=_positive,
@@ -795,20 +795,10 @@ def _blades(text: str) -> int:
     try:
         n = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of blades, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a whole number of blades, got {text!r}") from None
     if n != 0 and not 5 <= n <= 16:
         raise argparse.ArgumentTypeError(f"blades must be 0 (round) or 5 to 16, got {n}")
     return n
-
-
-def _finite(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}")
-    if not math.isfinite(x):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return x
 
 
 def _size(text: str) -> tuple[int, int]:
