@@ -50,7 +50,6 @@ from .ewa import disc_row_range, exponent, row_span, shared
 # differences: a call per fragment costs as much as the kernel
 shared_inline = numba.njit(cache=True, nogil=True, inline="always")
 
-BOKEHS = ("disc", "gaussian")
 B_MAX = 8.0  # disc radius in Gaussian sigmas beyond which the edge profile no longer changes
 TABLE_B = 65  # columns over b in [0, B_MAX]
 TABLE_U = 321  # rows over u in [-B_MAX, sqrt(2c)]
@@ -96,11 +95,12 @@ def aperture_moments(cutoff: float) -> np.ndarray:
         b = np.linspace(0.0, B_MAX, TABLE_B)
         moments = np.zeros((TABLE_B, 2))
         fine = np.linspace(0.0, 1.0, 4001)
+        trapezoid = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 has only trapz
         for k in range(TABLE_B):
             uu = -b[k] + (u_c + b[k]) * fine  # u from -b to the cutoff
             t = np.interp(uu, u, table[k])
-            moments[k, 0] = np.trapezoid(t, uu)
-            moments[k, 1] = np.trapezoid(t * uu, uu)
+            moments[k, 0] = trapezoid(t, uu)
+            moments[k, 1] = trapezoid(t * uu, uu)
         moments = np.ascontiguousarray(moments)
         _TABLES[key] = moments
     return moments
