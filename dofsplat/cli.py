@@ -421,8 +421,9 @@ def _summary(paths: list[Path], stats: dict) -> str:
 
 
 def _count(n: int) -> str:
-    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e4, "k")):
-        if n >= scale:
+    """A count for the summary line: 9,999 as is, then 10.0k, 466.3k, 20.9M, 6.2G."""
+    for threshold, scale, suffix in ((1e9, 1e9, "G"), (1e6, 1e6, "M"), (1e4, 1e3, "k")):
+        if n >= threshold:
             return f"{n / scale:.1f}{suffix}"
     return f"{n:,}"
 

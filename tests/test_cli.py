@@ -421,3 +421,14 @@ def test_z_up_framing_looks_from_the_front(plane_ply, workdir, capsys):
     eye, target = np.array(cam["eye"]), np.array(cam["target"])
     d = (target - eye) / np.linalg.norm(target - eye)
     np.testing.assert_allclose(d, [0, 1, 0], atol=1e-9)
+
+
+def test_summary_counts_say_what_they_mean():
+    """Issue 18: 466,314 fragments once printed as "46.6k" (divided by 1e4, called k)."""
+    from dofsplat.cli import _count
+
+    assert _count(9_999) == "9,999"
+    assert _count(10_000) == "10.0k"
+    assert _count(466_314) == "466.3k"
+    assert _count(20_912_345) == "20.9M"
+    assert _count(6_200_000_000) == "6.2G"
