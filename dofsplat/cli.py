@@ -778,9 +778,9 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                           "the blur, to see which levels the depth of field selects")
     lod.add_argument("--taper", action="store_true",
                      help="with --bokeh gaussian: taper LOD nodes' Gaussians to 0 at the "
-                          "cutoff, so that very large blurs show no hard-edged discs (+1 to "
-                          "1.5 dB on a contact scene, -7 dB against --no-lod on the plane; "
-                          "off by default; the aperture's kernels are always tapered)")
+                          "cutoff, so that very large blurs show no hard-edged discs; it "
+                          "also narrows them, so it is off by default (docs/maths.md). The "
+                          "aperture's kernels (the default) are always tapered")
     if not is_demo:
         lod.add_argument("--lod-cache", metavar="FILE|auto|off", default="auto",
                          help="where the hierarchy is kept between runs: auto (default) "

@@ -267,8 +267,10 @@ def aperture_shape(lens, settings: RenderSettings):
     from .splat.bokeh import aperture_moments, aperture_table, blade_normals
 
     disc = lens is not None and settings.dof and getattr(lens, "bokeh", "gaussian") == "disc"
-    blades = blade_normals(lens.blades, lens.blade_rotation) if disc else np.zeros((0, 2))
-    return disc, blades, aperture_table(settings.cutoff), aperture_moments(settings.cutoff)
+    if not disc:  # no kernel reads the tables: none built (scipy.stats is not imported)
+        return False, np.zeros((0, 2)), np.zeros((1, 1)), np.zeros((1, 1))
+    blades = blade_normals(lens.blades, lens.blade_rotation)
+    return True, blades, aperture_table(settings.cutoff), aperture_moments(settings.cutoff)
 
 
 def kernel_floor(settings: RenderSettings) -> float:

@@ -188,7 +188,7 @@ def front_fragments(splats, k, px0, px1, py0, py1, front, width):
     """Splat k's unblurred disk into the front buffer of pixels px0..px1 x py0..py1.
 
     front: (H * W, 2) float32, per pixel the smallest depth and the smallest z_hi of the
-    opaque disks covering it. Returns the number of pixels visited.
+    opaque disks covering it.
     """
     mx, my = splats[k, MX], splats[k, MY]
     f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
@@ -208,7 +208,6 @@ def front_fragments(splats, k, px0, px1, py0, py1, front, width):
                     front[p, 0] = d
                 if zhi < front[p, 1]:
                     front[p, 1] = zhi
-    return max(x1 - x0 + 1, 0) * max(y1 - y0 + 1, 0)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -232,9 +231,9 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
 
     At each of VIS_SAMPLES points of its unblurred disk (the centre, 8 points on the
     1-sigma ellipse), a splat is hidden if its z-range, widened by its depth change over
-    the 0.75 px to the pixel centre, begins behind the z-range of the front there; hidden by a front of merge fraction m (same layer through the lens), its
-    blur would add to the front's where every lens sample sees the front: it is removed
-    by m. Hidden by a front far from it in parallax, it stays, and the A-buffer lets the
+    the 0.75 px to the pixel centre, begins behind the z-range of the front there; hidden
+    by a front of merge fraction m (same layer through the lens), its blur would add to the
+    front's where every lens sample sees the front: it is removed by m. Hidden by a front far from it in parallax, it stays, and the A-buffer lets the
     front's blurred rim show it (partial occlusion).
     """
     mx, my = splats[k, MX], splats[k, MY]

@@ -44,7 +44,7 @@ import math
 import numba
 import numpy as np
 
-from .ewa import disc_row_range, exponent, row_span, shared
+from .ewa import exponent, shared
 
 # the per-fragment functions are inlined at numba's level, like the Gaussian's forward
 # differences: a call per fragment costs as much as the kernel
@@ -186,29 +186,6 @@ def aperture_value(q, p, dx, dy, radius, mix, normals, table, u_c):
     s = s_gauss + mix * (s_edge - s_gauss)
     rad = direction_radius(dx, dy, rr, radius, normals)
     return table_value((rr - rad) * s, rad * s, table, u_c)
-
-
-@shared
-def aperture_pixel_sum(mx, my, c11, c12, c22, radius, mix, reach, normals, table, u_c, x0, x1,
-                       y0, y1):
-    """Sum of ``aperture_kernel`` over the pixel centres of the bbox (unclipped), row by row
-    inside the circle of ``reach``: the kernel's normalisation (ewa.kernel_pixel_sum's twin)."""
-    det = c11 * c22 - c12 * c12
-    w11, w12, w22 = c22 / det, -c12 / det, c11 / det
-    total = 0.0
-    for i in range(y0, y1 + 1):
-        j0, j1 = disc_row_range(i, mx, my, reach, x0, x1)
-        if j0 > j1:
-            continue
-        q, dq, p, dp, dx, dy = aperture_row_start(j0, i, mx, my, c11, c12, c22, w11, w12, w22)
-        for _ in range(j0, j1 + 1):
-            total += aperture_value(q, p, dx, dy, radius, mix, normals, table, u_c)
-            q += dq
-            dq += c11
-            p += dp
-            dp += 2.0 * w11
-            dx += 1.0
-    return total
 
 
 @shared

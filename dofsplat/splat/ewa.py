@@ -136,9 +136,7 @@ def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     w11 = a11 * a11 + a12 * a12 + 1.0
     w12 = a11 * a21 + a12 * a22
     w22 = a21 * a21 + a22 * a22 + 1.0
-    if (q11 > 0.0 or q22 > 0.0) and v_dof <= 0.0:
-        d11, d12, d22 = q11, q12, q22  # circumellipse(Q, Q/3) is Q (an aperture-shaped blur)
-    elif q11 > 0.0 or q22 > 0.0:
+    if q11 > 0.0 or q22 > 0.0:
         # 1e-9: keeps B positive definite for a node that projects to a line at focus
         b11, b12, b22 = v_dof + q11 / 3.0 + 1e-9, q12 / 3.0, v_dof + q22 / 3.0 + 1e-9
         d11, d12, d22 = circumellipse_general(q11, q12, q22, b11, b12, b22)
@@ -272,19 +270,20 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     coc_r = coc_radius_px(depth, coc_k, inv_focus)
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, lod_cov, view, ax, ay)
     radius = 0.0  # the aperture's radius in the kernel (bokeh.py); 0: the paper's Gaussian
+    # the unblurred kernel J V^r J^T + I
+    b11, b12, b22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
     if disc:
         # the Gaussian part is the unblurred kernel; the aperture is the disc C_r. A node's
         # surfels, each blurred by that disc, spread by Q/3 (their positions' covariance):
         # the node keeps the whole disc and a Gaussian of Q/3, and at least its filter Q
         # where the blur is too small to cover the space between nodes (Section 6.2's
         # circumellipse, the disc counted as its L2 Gaussian V^I): Q/3 + max(2Q/3 - V^I, 0)
-        w11, w12, w22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
         v_dof = dof_variance(coc_r)
         e11, e12, e22 = circumellipse(2.0 / 3.0 * q11 - v_dof, 2.0 / 3.0 * q12,
                                       2.0 / 3.0 * q22 - v_dof, 0.0)
-        w11 += q11 / 3.0 + e11
-        w12 += q12 / 3.0 + e12
-        w22 += q22 / 3.0 + e22
+        w11 = b11 + q11 / 3.0 + e11
+        w12 = b12 + q12 / 3.0 + e12
+        w22 = b22 + q22 / 3.0 + e22
         radius = coc_r
         # an aperture no wider than the kernel is the Gaussian of its second moment, to an
         # L1 distance under 0.01 (b = R / sigma_min < 1; docs/maths.md), and cheaper
@@ -300,8 +299,7 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
                                         dof_variance(coc_r))
     # the unblurred disk (what a pinhole sees, without the prefilter: a far sub-pixel disk
     # must not claim pixels beyond its own surface): the basis and a node's own filter
-    f11, f12, f22 = kernel_variance(j11, j12, j21, j22, su, sv, 0.0, 0.0, 0.0, 0.0)
-    f11, f12, f22 = f11 - 1.0 + q11 + 1e-6, f12 + q12, f22 - 1.0 + q22 + 1e-6
+    f11, f12, f22 = b11 - 1.0 + q11 + 1e-6, b12 + q12, b22 - 1.0 + q22 + 1e-6
 
     # z-range in camera space, not enlarged by the blur (Section 6.4): the truncated leaf
     # basis reaches sqrt(2c) sigma in depth; a node adds the depth spread of its surfels
@@ -362,20 +360,6 @@ def kernel_bbox(mx, my, w11, w22, cutoff, radius):
     y0 = math.floor(max(my - hy - 0.5, -COORD_LIMIT))
     y1 = math.ceil(min(my + hy - 0.5, COORD_LIMIT))
     return int(x0), int(x1), int(y0), int(y1)
-
-
-@shared
-def disc_row_range(i, mx, my, reach, x0, x1):
-    """Inclusive columns (j0, j1) of row i within ``reach`` pixels of the centre (an aperture
-    kernel's support lies inside the circle of its radius plus its Gaussian's cutoff reach)."""
-    dy = i + 0.5 - my
-    h2 = reach * reach - dy * dy
-    if h2 < 0.0:
-        return 1, 0
-    h = math.sqrt(h2)
-    j0 = math.floor(max(mx - h - 0.5, -COORD_LIMIT))
-    j1 = math.ceil(min(mx + h - 0.5, COORD_LIMIT))
-    return max(int(j0), x0), min(int(j1), x1)
 
 
 @shared

@@ -2,9 +2,10 @@
 
 Output, one row per surfel in a float64 (N, N_FIELDS) array (columns ``SPLAT_FIELDS``):
 screen mean, conic (inverse variance), amplitude, z-range, depth, shaded colour, opacity,
-CoC radius, unclipped bbox columns, and the unblurred footprint's conic (the splat as a
-pinhole sees it, for the A-buffer's front pass) and its depth change per pixel; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1, inclusive) clipped to the
-image; and a visibility flag. A splat's fragment weight at pixel centre x is
+CoC radius, unclipped bbox columns, the aperture's radius and reach (splat/bokeh.py), the
+unblurred footprint's conic (the splat as a pinhole sees it, for the A-buffer's front pass)
+and its depth change per pixel; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
+inclusive) clipped to the image; and a visibility flag. A splat's fragment weight at pixel centre x is
 
     amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
 
