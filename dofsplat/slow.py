@@ -261,8 +261,9 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
                                      np.linspace(-B_MAX, u_c, TABLE_U)), aperture_table(cutoff))
     ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1] + 0.5
     d = np.stack([xs - m[0], ys - m[1]], axis=-1)
-    r = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-300)
-    n = d / r[..., None]
+    r = np.hypot(d[..., 0], d[..., 1])
+    # the centre has no direction: it takes x's (bokeh.aperture_value)
+    n = np.where((r > 0)[..., None], d / np.maximum(r, 1e-300)[..., None], [1.0, 0.0])
     flip = -1.0 if radius < 0 else 1.0  # before the focal plane the polygon is turned over
     radius = abs(radius)
     s_gauss = np.sqrt(np.einsum("...i,ij,...j->...", n, np.linalg.inv(W), n))
@@ -274,30 +275,54 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     b = rad * scale
     u = r * scale - b
     value = table(np.stack([np.minimum(b, B_MAX), np.clip(u, -B_MAX, u_c)], axis=-1))
-    value = np.where(u < -B_MAX, 1.0, np.where(u >= u_c, 0.0, value))
+    value = np.where(u >= u_c, 0.0, value)  # below -B_MAX: the plateau, the first column
     inside = (ys - 0.5 - m[1] + 0.5) ** 2 + (xs - m[0]) ** 2 <= reach ** 2
     return np.where(inside, value, 0.0)
 
 
-def aperture_mass_reference(W, radius, mix, blades, moments):
-    """bokeh.aperture_mass in numpy: the kernel's integral, (I1(b) + b I0(b)) / s^2 summed
-    over MASS_ANGLES directions (midpoint rule), I0 and I1 interpolated in b."""
+def aperture_mass_reference(W, radius, mix, blades, moments, angles=None):
+    """bokeh.aperture_mass in numpy: the kernel's integral, int f(theta) dtheta with
+    f = (I1(b) + b I0(b)) / s^2 (I0, I1 interpolated in b), by the same two families of
+    directions (uniform, and W^(1/2) m of uniform m, from numpy's eigh) and the balance
+    heuristic; ``angles`` directions per family instead, uniform only, for a fine plain
+    quadrature that the test compares both with."""
     from .splat.bokeh import B_MAX, MASS_ANGLES, TABLE_B
 
-    a = (np.arange(MASS_ANGLES) + 0.5) * 2 * math.pi / MASS_ANGLES
-    n = np.stack([np.cos(a), np.sin(a)], axis=1)
-    s_gauss = np.sqrt(np.einsum("ki,ij,kj->k", n, np.linalg.inv(W), n))
-    s_edge = 1 / np.sqrt(np.einsum("ki,ij,kj->k", n, W, n))
-    s = s_gauss + mix * (s_edge - s_gauss)
-    rad = np.full(MASS_ANGLES, abs(radius))
-    if len(blades):
-        rad = abs(radius) * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=1)
-    b = rad * s
-    grid = np.linspace(0, B_MAX, TABLE_B)
-    i0 = np.where(b >= B_MAX, moments[-1, 0] + (b - B_MAX), np.interp(b, grid, moments[:, 0]))
-    i1 = np.where(b >= B_MAX, moments[-1, 1] - (b * b - B_MAX ** 2) / 2,
-                  np.interp(b, grid, moments[:, 1]))
-    return float(np.sum((i1 + b * i0) / s ** 2) * 2 * math.pi / MASS_ANGLES)
+    W = np.asarray(W, float)
+    Wi = np.linalg.inv(W)
+
+    def f(n):
+        s_gauss = np.sqrt(np.einsum("ki,ij,kj->k", n, Wi, n))
+        s_edge = 1 / np.sqrt(np.einsum("ki,ij,kj->k", n, W, n))
+        s = s_gauss + mix * (s_edge - s_gauss)
+        rad = np.full(len(n), abs(radius))
+        if len(blades):
+            rad = abs(radius) * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=1)
+        b = rad * s
+        grid = np.linspace(0, B_MAX, TABLE_B)
+        plateau = moments[-1, 2]  # the table's first column: T beyond u = -B_MAX
+        i0 = np.where(b >= B_MAX, moments[-1, 0] + plateau * (b - B_MAX),
+                      np.interp(b, grid, moments[:, 0]))
+        i1 = np.where(b >= B_MAX, moments[-1, 1] - plateau * (b * b - B_MAX ** 2) / 2,
+                      np.interp(b, grid, moments[:, 1]))
+        return (i1 + b * i0) / s ** 2
+
+    def unit(a):
+        return np.stack([np.cos(a), np.sin(a)], axis=1)
+
+    if angles is not None:
+        return float(np.sum(f(unit((np.arange(angles) + 0.5) * 2 * math.pi / angles)))
+                     * 2 * math.pi / angles)
+    family = MASS_ANGLES if len(blades) == 0 else 2 * MASS_ANGLES
+    m = unit((np.arange(family) + 0.5) * 2 * math.pi / family)
+    lam, vec = np.linalg.eigh(W)
+    v = m @ ((vec * np.sqrt(lam)) @ vec.T)  # W^(1/2) m (W^(1/2) is symmetric)
+    total = 0.0
+    for n in (m, v / np.linalg.norm(v, axis=1)[:, None]):
+        # balance heuristic: f / (p_U + p_G), p_U = 1/2pi, p_G = 1 / (2pi sqrt|W| n^T W^-1 n)
+        g = np.einsum("ki,ij,kj->k", n, Wi, n)
+        total += np.sum(2 * math.pi * f(n) / (1 + 1 / (math.sqrt(np.linalg.det(W)) * g)))
+    return float(total / family)
 
 
 def merge_fraction_reference(d_front, d_back, opacity_front, merge):

@@ -22,12 +22,12 @@ import math
 import numba
 import numpy as np
 
-from ..splat.bokeh import aperture_row_start, aperture_value, support_conic
+from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
 from ..splat.ewa import exponent, row_pixel_range, row_span, row_start
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
                              GRAD_Z, GREEN, MIX, MX, MY, RAD, RED, X0, X1, ZHI, ZLO)
 
-TILE = 16
+TILE = ROW  # 16: the aperture kernel's SIMD rows (splat/bokeh.py) are a tile wide
 MAX_SURFACES = 8
 # per-surface accumulators in the tile A-buffer
 S_W, S_WR, S_WG, S_WB, S_WA, S_WD, S_ZLO, S_ZHI = range(8)
@@ -394,6 +394,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     """
     n_tiles = offsets.shape[0] - 1
     bg_r, bg_g, bg_b = background[0], background[1], background[2]
+    round_aperture = blades.shape[0] == 0
+    flat = table.reshape(-1)
     for t in numba.prange(n_tiles):
         ty = ty0 + t // n_tx
         tx = t % n_tx
@@ -401,6 +403,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
         acc = np.empty((TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
         cnt = np.zeros(TILE * TILE, np.int64)
+        cell = np.empty(TILE * TILE, np.int32)  # an aperture kernel's table cells per pixel
+        frac = np.empty((2, TILE * TILE), np.float64)
         frags = 0
         overflows = 0
         for e in range(offsets[t], offsets[t + 1]):
@@ -416,12 +420,17 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
             radius = splats[k, RAD]
             if radius != 0.0:
-                # the aperture's shape (splat/bokeh.py): a table look-up per fragment
+                # the aperture's shape (splat/bokeh.py): the scales of the tile's rows in SIMD
+                # lanes, then a table look-up per fragment
                 det = c11 * c22 - c12 * c12
                 w11, w12, w22 = c22 / det, -c12 / det, c11 / det
                 mix = splats[k, MIX]
                 b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
-                for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
+                ia, ib = max(bbox[k, 2], py0), min(bbox[k, 3], py1)
+                if round_aperture:
+                    aperture_rows(cell, frac, ib - ia + 1, px0 + 0.5 - mx, ia + 0.5 - my,
+                                  radius, c11, c12, c22, w11, w12, w22, mix, u_c)
+                for i in range(ia, ib + 1):
                     # the row's span over the support's bounding ellipse, a pixel wider
                     lo, hi = row_span(i + 0.5 - my, b11, b12, b22, 0.5)
                     if lo > hi:
@@ -429,23 +438,23 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     j0 = max(int(math.floor(mx + lo - 0.5)), x0)
                     j1 = min(int(math.ceil(mx + hi - 0.5)), x1)
                     ja, jb = max(j0, px0), min(j1, px1)
-                    if ja > jb:
-                        continue
-                    q, dq, pw, dpw, dx, dy = aperture_row_start(ja, i, mx, my, c11, c12, c22,
-                                                                w11, w12, w22)
                     p = (i - py0) * TILE + (ja - px0)
-                    for _ in range(ja, jb + 1):
-                        wk = aperture_value(q, pw, dx, dy, radius, mix, blades, table, u_c)
+                    e = (i - ia) * TILE + (ja - px0)
+                    dy = i + 0.5 - my
+                    for j in range(ja, jb + 1):
+                        if round_aperture:
+                            wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
+                        else:
+                            dx = j + 0.5 - mx
+                            wk = aperture_value(c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy,
+                                                w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy,
+                                                dx, dy, radius, mix, blades, table, u_c, c11, w11)
                         if wk > 0.0:
                             overflows += insert_fragment(acc, cnt, p, amp * wk, r, g, b, a, d,
                                                          zlo, zhi)
                             frags += 1
-                        q += dq
-                        dq += c11
-                        pw += dpw
-                        dpw += 2.0 * w11
-                        dx += 1.0
                         p += 1
+                        e += 1
                 continue
             step2 = math.exp(-c11)
             for i in range(max(bbox[k, 2], py0), min(bbox[k, 3], py1) + 1):
