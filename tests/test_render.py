@@ -202,3 +202,24 @@ def test_shading_kernel_equals_numpy_twin():
         b = shade_fast(s.positions, s.normals, s.colors, mat, cam, lights, two_sided)
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
         assert a.max() > a.min() + 0.5  # the lights do something
+
+
+def test_frames_reusing_the_workspace_equal_fresh_ones():
+    """render() keeps its splat buffers between frames (render._workspace): a frame after a
+    larger and a smaller one equals the same frame with fresh buffers, bit for bit."""
+    import importlib
+
+    render_module = importlib.import_module("dofsplat.render")  # (ds.render is the function)
+
+    big, small = random_scene(7, n=600), random_scene(8, n=40)
+    cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=48, height=40, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.6, aperture=0.3)
+    st = ds.RenderSettings(lod=False)
+    render_module._LOCAL.workspace = {}
+    first = ds.render(big, cam, lens, st).image
+    ds.render(small, cam, lens, st)
+    assert render_module._LOCAL.workspace["splats"].shape[0] == 600  # kept, not shrunk
+    again = ds.render(big, cam, lens, st).image
+    np.testing.assert_array_equal(first, again)
+    render_module._LOCAL.workspace = {}
+    np.testing.assert_array_equal(ds.render(big, cam, lens, st).image, first)

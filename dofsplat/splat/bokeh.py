@@ -309,7 +309,9 @@ def mass_direction(nx, ny, radius, c11, c12, c22, w11, w12, w22, sqrt_det, mix, 
     return 2.0 * math.pi * (i1 + b * i0) / (s * s) / (1.0 + 1.0 / (sqrt_det * g))
 
 
-@shared
+# per splat, on the CPU: without numba's zero-division checks (a branch per division; W is
+# positive definite and s > 0, so none can divide by zero) the loop pipelines
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def aperture_mass(radius, w11, w12, w22, mix, normals, moments):
     """The integral of ``aperture_kernel`` over the plane (pixels^2): int f(theta) dtheta
     with f = (I1(b) + b I0(b)) / s^2 along each direction (``aperture_moments``).
