@@ -10,7 +10,6 @@ dark textured plane, the lens focused in front of them.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 

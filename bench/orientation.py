@@ -1,4 +1,4 @@
-"""How point-cloud normals are oriented, across k and smoothing (dofsplat.pointcloud).
+"""How point-cloud normals are oriented, across k and smoothing (dofsplat.prep.pointcloud).
 
 For the lion scan (z up) at k = 8 ... 32, with and without smoothing, prints the share of
 the flat surfels in the lowest tenth of the scan whose normal faces up (the ground), and
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-import dofsplat.pointcloud as pc
-from dofsplat.meshes import vertex_normals
+import dofsplat.prep.pointcloud as pc
+from dofsplat.prep.meshes import vertex_normals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from uniformity import DATA, read_ply_points  # noqa: E402

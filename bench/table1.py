@@ -57,7 +57,7 @@ def lion_scene(n_points: int | None, width=512, height=512, seed=0):
         from plyfile import PlyData
 
         from dofsplat.io import srgb_to_linear
-        from dofsplat.pointcloud import points_to_surfels
+        from dofsplat.prep.pointcloud import points_to_surfels
 
         v = PlyData.read(str(LION))["vertex"]
         pos = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)

@@ -3,10 +3,10 @@
 For the Stanford dragon (its 437,645 mesh vertices as bare points), the lion scan (341,989
 points) and the demo plane (``dofsplat.demo.textured_plane``, 512 x 512 surfels on a grid,
 and the same plane as jittered bare points), and for meshes sampled by
-``dofsplat.meshes.mesh_to_surfels`` (a unit square, 40,000 samples; Spot, 200,000; the
+``dofsplat.prep.meshes.mesh_to_surfels`` (a unit square, 40,000 samples; Spot, 200,000; the
 full dragon mesh, 437,645), prints the fraction of interior surface pixels whose
 accumulated weight lies in 1 +- 0.1 (the paper's measure, Section 6.3;
-``dofsplat.normalise.uniformity``) with no normalisation, the object-space method and the
+``dofsplat.prep.normalise.uniformity``) with no normalisation, the object-space method and the
 paper's render-capture method, and how long each preprocessing step takes.
 
 Each model is rendered pinhole, unlit, c = 2.5, no LOD, from two directions, at 512 x 512
@@ -40,8 +40,8 @@ import numpy as np
 import dofsplat as ds
 from dofsplat.demo import textured_plane
 from dofsplat.io import srgb_to_linear
-from dofsplat.normalise import edge_margin, normalise, uniformity
-from dofsplat.pointcloud import points_to_surfels
+from dofsplat.prep.normalise import edge_margin, normalise, uniformity
+from dofsplat.prep.pointcloud import points_to_surfels
 from dofsplat.render import RenderSettings, render
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -103,10 +103,10 @@ def model(name: str, **options):
 
 
 def mesh_model(name: str, smooth: bool = True):
-    """A mesh sampled by mesh_to_surfels, not normalised (dofsplat.meshes.RADIUS_SCALE as
+    """A mesh sampled by mesh_to_surfels, not normalised (dofsplat.prep.meshes.RADIUS_SCALE as
     set by --radius-scale; smooth: samples on the Phong tessellation)."""
     from dofsplat.io import load
-    from dofsplat.meshes import MeshPart, mesh_to_surfels
+    from dofsplat.prep.meshes import MeshPart, mesh_to_surfels
 
     t0 = time.perf_counter()
     if name == "square-mesh":
@@ -166,7 +166,7 @@ def main(argv=None):
                     help="pixels per median surfel radius in the close-up views")
     ap.add_argument("--radius-scale", type=float, default=None,
                     help="meshes: disk radius over the radius of the area a sample stands "
-                         "for (default: dofsplat.meshes.RADIUS_SCALE)")
+                         "for (default: dofsplat.prep.meshes.RADIUS_SCALE)")
     ap.add_argument("--quick", action="store_true",
                     help="512 x 512 only, object method only")
     ap.add_argument("--k", type=int, default=None,
@@ -176,9 +176,9 @@ def main(argv=None):
                          "samples on the flat faces")
     args = ap.parse_args(argv)
     if args.radius_scale is not None:
-        import dofsplat.meshes
+        import dofsplat.prep.meshes
 
-        dofsplat.meshes.RADIUS_SCALE = args.radius_scale
+        dofsplat.prep.meshes.RADIUS_SCALE = args.radius_scale
     methods = ("none", "object") if args.quick else ("none", "object", "render")
     methods = args.methods or methods
     sizes = (512,) if args.quick else (512, None)

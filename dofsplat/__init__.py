@@ -6,8 +6,9 @@ An implementation of Krivanek & Zara, "Rendering Depth-of-Field with Surface Spl
 
 from .camera import Camera, EyeLens, ThinLens, photographic
 from .errors import DofsplatError
+from .frame import RenderResult, RenderSettings
 from .metrics import compare
-from .render import RenderResult, RenderSettings, focus_distance_at, render
+from .render import focus_distance_at, render
 from .reference import render_reference
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels

@@ -133,7 +133,7 @@ def run_reference(args) -> int:
     # every lens sample is a full-resolution pinhole render: no LOD hierarchy to build (the
     # parser has no LOD options for this command; the shared code reads these, so any LOD
     # option added later gets RenderSettings' default here rather than an AttributeError)
-    from .render import RenderSettings
+    from .frame import RenderSettings
 
     lod_defaults = RenderSettings()
     args.lod, args.show_lod = False, False
@@ -298,7 +298,7 @@ def _lens(args, focus: float, default_aperture: float):
 
 def _settings(args):
     from .io import srgb_to_linear
-    from .render import RenderSettings
+    from .frame import RenderSettings
 
     background = (0.0, 0.0, 0.0)
     if args.background is not None:

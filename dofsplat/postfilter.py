@@ -40,7 +40,8 @@ import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
-from .render import RenderResult, RenderSettings, render
+from .frame import RenderResult, RenderSettings
+from .render import render
 from .surfels import Surfels
 
 MAX_RADIUS_PX = 64.0  # CoC radii are clamped here: the gather costs pi r_max^2 per pixel
@@ -109,7 +110,7 @@ def render_postfilter(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens
         coc_k, inv_focus = 0.0, 0.0
     else:
         coc_k, inv_focus = lens.coc_coefficients(camera)
-    from .render import aperture_shape
+    from .frame import aperture_shape
 
     blades = aperture_shape(lens, settings)[1]  # the lens's polygon, if it has blades
     image = postfilter(pinhole.image, pinhole.depth, coc_k, inv_focus, depth_test=depth_test,

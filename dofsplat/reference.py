@@ -45,7 +45,9 @@ import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
-from .render import RenderResult, RenderSettings, render, shade_surfels, warm_up
+from .backends.cpu import shade_surfels, warm_up
+from .frame import RenderResult, RenderSettings
+from .render import render
 from .surfels import Surfels
 
 DEFAULT_SAMPLES = 200  # the paper's reference: 200 pinhole images (Section 7)

@@ -21,7 +21,7 @@ import numpy as np
 
 from .camera import Camera
 from .splat.ewa import SMALL_APERTURE
-from .render import RenderSettings, coc_coefficients
+from .frame import RenderSettings, coc_coefficients
 from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
 
@@ -69,7 +69,7 @@ def circumellipse_appendix(A, B, C, r):
 
 def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
                       settings: RenderSettings, lod_cov=None):
-    """numpy twin of ``render.project``: (splats (N, N_FIELDS), bbox (N, 4), visible (N,)).
+    """numpy twin of ``backends.cpu.project``: (splats (N, N_FIELDS), bbox (N, 4), visible (N,)).
 
     lod_cov: optional (N, 6) world covariances of an LOD filter V^{q,l} per surfel
     (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
@@ -77,7 +77,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
                                 EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GRAD_Z, GREEN, MIX,
                                 MX, MY, N_FIELDS, RAD, REACH, RED, X0, X1, ZHI, ZLO)
-    from .render import aperture_shape, kernel_floor
+    from .frame import aperture_shape, kernel_floor
 
     n = len(surfels)
     c = float(settings.cutoff)
@@ -204,7 +204,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
                         max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5), blades=None):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
-    merge: (K, 1/P, rho0, rho1) of ``render.merge_parameters`` (K = 0: the paper's "over");
+    merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K = 0: the paper's "over");
     blades: (N, 2) edge normals of a polygonal aperture (None: round).
     """
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX,
@@ -468,7 +468,8 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
 
 def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None):
     """The whole pipeline from the twins (shading is shared: it is numpy already)."""
-    from .render import aperture_shape, merge_parameters, shade_surfels
+    from .backends.cpu import shade_surfels
+    from .frame import aperture_shape, merge_parameters
 
     settings = settings or RenderSettings()
     rgb = shade_surfels(surfels, camera, settings)

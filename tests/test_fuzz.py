@@ -180,7 +180,7 @@ def load_or_error(path) -> None:
 @pytest.fixture(autouse=True)
 def _few_samples(monkeypatch):
     """Meshes sample 40 points, not 200k: the fuzzing is about parsing."""
-    import dofsplat.meshes as meshes
+    import dofsplat.prep.meshes as meshes
 
     monkeypatch.setattr(meshes, "DEFAULT_MIN_SAMPLES", 40)
 

@@ -25,7 +25,7 @@ from dofsplat.io.gaussians import SH_C0, gaussians_to_surfels, quaternion_matric
 from dofsplat.io.las import read_las_points
 from dofsplat.io.pcd import parse_pcd_header, read_pcd_columns
 from dofsplat.io.ply import parse_ply_header, ply_kind, read_ply_header, triangulate
-from dofsplat.meshes import (
+from dofsplat.prep.meshes import (
     RADIUS_SCALE,
     MeshPart,
     mesh_to_surfels,
@@ -33,7 +33,7 @@ from dofsplat.meshes import (
     poisson_eliminate,
     sample_texture,
 )
-from dofsplat.normalise import normalise, object_sums
+from dofsplat.prep.normalise import normalise, object_sums
 from dofsplat.surfels import Surfels
 
 U8 = 1.0 / 255.0  # one step of an 8-bit value
@@ -59,7 +59,7 @@ def shared(relative: str):
 @pytest.fixture
 def captured_points(monkeypatch):
     """Replace points_to_surfels with a recorder of its arguments (it still runs)."""
-    import dofsplat.pointcloud as pc
+    import dofsplat.prep.pointcloud as pc
 
     calls = []
     real = pc.points_to_surfels
@@ -730,7 +730,7 @@ def test_pcd_truncated_and_corrupt_data(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# mesh sampling (dofsplat.meshes)
+# mesh sampling (dofsplat.prep.meshes)
 
 
 def test_sampling_is_area_uniform_and_deterministic():
@@ -752,7 +752,7 @@ def test_sampling_is_area_uniform_and_deterministic():
         assert c == pytest.approx(np.mean(counts), rel=0.05), counts
         assert c == pytest.approx(4000 * 0.8 / 4.0, rel=0.08), counts
     # the candidates before the elimination: every face gets its share to one sample
-    import dofsplat.meshes as meshes
+    import dofsplat.prep.meshes as meshes
 
     geo = meshes._face_geometry(part)
     face = meshes._candidates([part], [geo], 8000, 4.0)[1]
@@ -780,7 +780,7 @@ def test_sphere_normals_and_radii():
 def test_phong_positions():
     import trimesh
 
-    from dofsplat.meshes import phong_positions
+    from dofsplat.prep.meshes import phong_positions
 
     # a coarse icosphere (42 vertices): samples on the Phong tessellation lie nearer the
     # sphere than on the flat faces (measured: mean | |p| - 1 | 0.044 flat, 0.017 smooth)
@@ -817,7 +817,7 @@ def test_sampled_plane_covers_without_holes():
     """A sampled square rendered head on: no holes, and most of the surface near 1.
 
     A regular grid sums to 1 +- 6 % here; irregular samples cannot, and the per-surfel
-    normalisation (dofsplat.normalise) is the remedy: this is the state before it.
+    normalisation (dofsplat.prep.normalise) is the remedy: this is the state before it.
     """
     v, f = square_mesh(20, 2.0)
     s = mesh_to_surfels(MeshPart(v - [1, 1, 0], f), 5000, normalise="none")
@@ -834,7 +834,7 @@ def test_sampled_plane_close_up_sums_to_1():
     area they stand for, then the object-space normalisation. With disks of that area's
     radius (r = h) the same normalisation cannot flatten the dips between blue-noise
     samples. Measured: 0.978 against 0.78 (bench/RESULTS.md has the whole square)."""
-    from dofsplat.normalise import uniformity
+    from dofsplat.prep.normalise import uniformity
 
     v, f = square_mesh(4, 1.0)
     s = mesh_to_surfels(MeshPart(v, f), 40_000)

@@ -1,4 +1,4 @@
-"""Per-point normalisation (dofsplat.normalise): both methods, the uniformity metric."""
+"""Per-point normalisation (dofsplat.prep.normalise): both methods, the uniformity metric."""
 
 import dataclasses
 import gzip
@@ -9,7 +9,7 @@ from conftest import SHARED_DATA, grid_surfels, lion_points
 
 import dofsplat as ds
 from dofsplat.errors import DofsplatError
-from dofsplat.normalise import (
+from dofsplat.prep.normalise import (
     edge_margin,
     interior_mask,
     normalise,
@@ -18,7 +18,7 @@ from dofsplat.normalise import (
     object_weights,
     uniformity,
 )
-from dofsplat.pointcloud import points_to_surfels
+from dofsplat.prep.pointcloud import points_to_surfels
 from dofsplat.render import RenderResult, RenderSettings, render
 
 UNLIT = {"shading": "none", "lod": False}

@@ -1,4 +1,4 @@
-"""Bare points to surfels (dofsplat.pointcloud): normals, orientation, radii, bad input."""
+"""Bare points to surfels (dofsplat.prep.pointcloud): normals, orientation, radii, bad input."""
 
 import dataclasses
 import math
@@ -10,7 +10,7 @@ from conftest import SHARED_DATA, lion_points
 
 import dofsplat as ds
 from dofsplat.errors import DofsplatError
-from dofsplat.pointcloud import (
+from dofsplat.prep.pointcloud import (
     MID_GREY,
     nearest_neighbours,
     neighbour_distances,
@@ -255,7 +255,7 @@ def test_irregular_samples_get_covering_disks_and_their_area():
     assert np.all(s.weight <= 1.0 + 1e-6)
     # no holes: face-on, with the kernels resolved (r ~ 6 px), every interior pixel is
     # covered, and better than by disks of radius sqrt(area) (measured minima 0.36, 0.20)
-    from dofsplat.normalise import interior_mask
+    from dofsplat.prep.normalise import interior_mask
 
     cam = ds.Camera(eye=(0, 0, 2.4), target=(0, 0, 0), width=320, height=320, fov_y=30)
     area_only = dataclasses.replace(s, radius=np.sqrt(area), weight=None)
@@ -337,7 +337,7 @@ def test_dragon_vertices_normals_agree_with_the_mesh():
         pytest.skip(f"shared data not found: {path}")
     from plyfile import PlyData
 
-    from dofsplat.meshes import vertex_normals
+    from dofsplat.prep.meshes import vertex_normals
 
     ply = PlyData.read(str(path))
     v = ply["vertex"]

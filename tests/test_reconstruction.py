@@ -1,7 +1,6 @@
 """The soft surface reconstruction (docs/maths.md, "Surface reconstruction"): the merge
 fraction, the resolve against its partition-sum twin, and the contact seam it removes."""
 
-import math
 
 import numpy as np
 import pytest

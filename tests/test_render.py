@@ -205,11 +205,11 @@ def test_shading_kernel_equals_numpy_twin():
 
 
 def test_frames_reusing_the_workspace_equal_fresh_ones():
-    """render() keeps its splat buffers between frames (render._workspace): a frame after a
+    """render() keeps its splat buffers between frames (backends.cpu._workspace): a frame after a
     larger and a smaller one equals the same frame with fresh buffers, bit for bit."""
     import importlib
 
-    render_module = importlib.import_module("dofsplat.render")  # (ds.render is the function)
+    render_module = importlib.import_module("dofsplat.backends.cpu")
 
     big, small = random_scene(7, n=600), random_scene(8, n=40)
     cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=48, height=40, fov_y=35)

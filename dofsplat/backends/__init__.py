@@ -16,8 +16,7 @@ from __future__ import annotations
 import warnings
 
 from ..errors import DofsplatError
-
-DEVICES = ("cpu", "cuda", "auto")
+from ..frame import DEVICES
 
 _PROBLEM: list[str | None] = []  # cuda_problem's answer, once computed
 _FALLBACK_SAID = False

@@ -512,8 +512,8 @@ def device_scene(surfels, tree=None) -> DeviceScene:
 
 
 def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> SplatSource:
-    """This frame's splats on the GPU: every surfel, or the LOD cut (render.select's twin)."""
-    from ..render import LOD_PALETTE, coc_coefficients
+    """This frame's splats on the GPU: every surfel, or the LOD cut (backends.cpu.select's twin)."""
+    from ..frame import LOD_PALETTE, coc_coefficients
 
     if not settings.lod:
         return scene.source
@@ -588,7 +588,7 @@ def _palette(palette: np.ndarray):
 
 
 def shade_cuda(source: SplatSource, camera, settings):
-    """Per-splat Phong on the GPU: (S, 3) float32 (render.shade_surfels' twin)."""
+    """Per-splat Phong on the GPU: (S, 3) float32 (backends.cpu.shade_surfels' twin)."""
     from ..splat.shade import light_arrays
 
     if settings.shading == "none":
@@ -606,8 +606,8 @@ def shade_cuda(source: SplatSource, camera, settings):
 
 
 def project_cuda(source: SplatSource, rgb, camera, lens, settings):
-    """EWA projection with the DOF blur on the GPU: splats, bbox, visible (render.project's twin)."""
-    from ..render import aperture_shape, coc_coefficients, kernel_floor
+    """EWA projection with the DOF blur on the GPU: splats, bbox, visible (backends.cpu.project's twin)."""
+    from ..frame import aperture_shape, coc_coefficients, kernel_floor
 
     n = source.size
     splats = _WS.get("splats", (n, N_FIELDS), np.float64)
@@ -664,11 +664,11 @@ def bin_cuda(bbox, visible, camera):
 def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge, lens=None):
     """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats.
 
-    merge: ``render.merge_parameters``; with K > 0 the front pass and the splats'
-    visibility come first, as in ``render.rasterize``.
+    merge: ``frame.merge_parameters``; with K > 0 the front pass and the splats'
+    visibility come first, as in ``backends.cpu.rasterize``.
     """
     from ..raster.abuffer import OPAQUE
-    from ..render import aperture_shape
+    from ..frame import aperture_shape
 
     _, blades, table, _ = aperture_shape(lens, settings)
 
@@ -739,7 +739,7 @@ class _Clock:
 
 def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame:
     """``render``'s pipeline on the GPU, the result left there (for timings and viewers)."""
-    from ..render import lod_tree, merge_parameters
+    from ..frame import lod_tree, merge_parameters
 
     tree = lod_tree(surfels, hierarchy) if settings.lod else None
     scene = device_scene(surfels, tree)
@@ -778,7 +778,7 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
 
 def render_cuda(surfels, camera, lens, settings, hierarchy=None):
     """``render`` on the GPU: a ``RenderResult`` with host arrays (render.render calls this)."""
-    from ..render import RenderResult
+    from ..frame import RenderResult
 
     warm_up()
     t0 = time.perf_counter()
@@ -803,7 +803,7 @@ def warm_up() -> None:
         return
     _WARM = True
     from ..camera import Camera, ThinLens
-    from ..render import RenderSettings
+    from ..frame import RenderSettings
     from ..surfels import Surfels
 
     s = Surfels(positions=[[0, 0, 0], [0.1, 0, 0]], normals=[[0, 0, 1], [0, 0, 1]],

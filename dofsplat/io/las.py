@@ -14,7 +14,7 @@ LAS coordinates are z-up (x east, y north, z up); dofsplat's are y-up (the defau
 looks along -z with y up). The points are turned -90 degrees about x, (x, y, z) ->
 (x, z, -y), so that ``dofsplat render`` shows the scan upright, seen from the south
 (from the scan's -y side) rather than from above. Surfels then come from
-:func:`dofsplat.pointcloud.points_to_surfels` (PCA normals, radii from the density).
+:func:`dofsplat.prep.pointcloud.points_to_surfels` (PCA normals, radii from the density).
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ def read_las(path, *, material: Material | None = None, k: int | None = None,
     normalisation, "object", "render" or "none" (all three: points_to_surfels)."""
     from dataclasses import replace
 
-    from ..normalise import check_method
-    from ..pointcloud import points_to_surfels
+    from ..prep.normalise import check_method
+    from ..prep.pointcloud import points_to_surfels
     from .ply import finite_rows
 
     check_method(normalise)

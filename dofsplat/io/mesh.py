@@ -1,8 +1,8 @@
 """Mesh files (OBJ, glTF, GLB, STL, OFF) to surfels, parsed by trimesh.
 
 trimesh reads the file and its materials; each mesh of the scene (with its node's
-transform applied) becomes one :class:`dofsplat.meshes.MeshPart`, and all parts are sampled
-together by :func:`dofsplat.meshes.mesh_to_surfels`, so the sample density is the same
+transform applied) becomes one :class:`dofsplat.prep.meshes.MeshPart`, and all parts are sampled
+together by :func:`dofsplat.prep.meshes.mesh_to_surfels`, so the sample density is the same
 over the whole scene. Materials:
 
 * glTF / GLB (PBR): baseColorTexture times baseColorFactor, alphaMode (OPAQUE, MASK with
@@ -42,8 +42,8 @@ def read_mesh(path, *, material: Material | None = None, points: int | str | Non
     Raises DofsplatError for an unreadable file, a file without triangles, or a texture
     for a mesh without texture coordinates.
     """
-    from ..meshes import mesh_to_surfels
-    from ..normalise import check_method
+    from ..prep.meshes import mesh_to_surfels
+    from ..prep.normalise import check_method
 
     check_method(normalise)
     path = Path(path)
@@ -125,7 +125,7 @@ def scene_parts(scene, source: str = "mesh"):
 
 def _mesh_parts(mesh, transform: np.ndarray, name: str):
     """One MeshPart (a list of one) from a trimesh.Trimesh and its node transform."""
-    from ..meshes import MeshPart
+    from ..prep.meshes import MeshPart
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     vertices = vertices @ transform[:3, :3].T + transform[:3, 3]
@@ -154,7 +154,7 @@ def _mesh_parts(mesh, transform: np.ndarray, name: str):
 
 def _material(material) -> dict:
     """MeshPart fields from a trimesh PBRMaterial (glTF) or SimpleMaterial (OBJ)."""
-    from ..meshes import texture_from_image
+    from ..prep.meshes import texture_from_image
 
     out = {}
     if material is None:
@@ -200,7 +200,7 @@ def _rgba8_to_linear(rgba) -> np.ndarray:
 
 def load_texture(path) -> np.ndarray:
     """(H, W, 4) float32 linear RGBA from an image file (sRGB colour, linear alpha)."""
-    from ..meshes import texture_from_image
+    from ..prep.meshes import texture_from_image
 
     path = Path(path)
     if not path.is_file():

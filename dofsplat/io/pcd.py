@@ -21,7 +21,7 @@ are dropped with a warning. Normals are turned towards the sensor, the VIEWPOINT
 translation (its rotation, which PCL's viewer applies to the points, is not used), for
 organised clouds and for unorganised ones whose VIEWPOINT is not PCL's default
 (0 0 0 1 0 0 0, which says nothing); other clouds are oriented by
-:func:`dofsplat.pointcloud.points_to_surfels`'s propagation (outwards).
+:func:`dofsplat.prep.pointcloud.points_to_surfels`'s propagation (outwards).
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ def read_pcd(path, *, material: Material | None = None, k: int | None = None,
     and radii; smooth: move the points onto their neighbourhood's plane; normalise: the
     per-surfel normalisation, "object", "render" or "none" (all three: points_to_surfels).
     DofsplatError for a damaged file or one without valid points."""
-    from ..normalise import check_method
-    from ..pointcloud import points_to_surfels
+    from ..prep.normalise import check_method
+    from ..prep.pointcloud import points_to_surfels
 
     check_method(normalise)
     path = Path(path)

@@ -2,8 +2,8 @@
 
 :func:`read_ply` (the loader for ``.ply`` and ``.ply.gz``) reads the header and dispatches
 (:func:`ply_kind`): surfel files to :func:`read_surfel_ply`, 3D Gaussian Splatting files to
-:mod:`dofsplat.io.gaussians`, meshes to :mod:`dofsplat.meshes`, bare points to
-:mod:`dofsplat.pointcloud` (docs/formats.md). Binary bodies are read by ``plyfile``, ASCII
+:mod:`dofsplat.io.gaussians`, meshes to :mod:`dofsplat.prep.meshes`, bare points to
+:mod:`dofsplat.prep.pointcloud` (docs/formats.md). Binary bodies are read by ``plyfile``, ASCII
 bodies by one numpy tokenisation (:func:`_read_ascii_body`).
 
 A surfel PLY has one ``vertex`` element with the properties
@@ -364,16 +364,16 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     * surfels: :func:`read_surfel_ply`, as they are (with their stored weights);
     * 3D Gaussian splats: one elliptical surfel per Gaussian (:mod:`dofsplat.io.gaussians`);
     * a triangle mesh (polygons are split into fans): sampled by
-      :func:`dofsplat.meshes.mesh_to_surfels`, ``points`` samples (None: the default count;
+      :func:`dofsplat.prep.meshes.mesh_to_surfels`, ``points`` samples (None: the default count;
       "vertices": one per vertex); vertex colours red green blue [alpha] (uchar, ushort:
       sRGB; float: linear); per-vertex texture coordinates (s t, u v or texture_u
       texture_v) with ``texture`` (an image file) or the image a ``comment TextureFile``
       line names; ``smooth`` (None: True) puts the samples on the Phong tessellation;
     * bare points: normals (nx ny nz) if present, colours as for meshes, then
-      :func:`dofsplat.pointcloud.points_to_surfels` with ``k`` neighbours and ``smooth``
+      :func:`dofsplat.prep.pointcloud.points_to_surfels` with ``k`` neighbours and ``smooth``
       (None: True, points moved onto their neighbourhood's plane).
 
-    normalise: the per-surfel normalisation (:func:`dofsplat.normalise.normalise`): None
+    normalise: the per-surfel normalisation (:func:`dofsplat.prep.normalise.normalise`): None
     gives "object" for meshes and points and leaves surfel and 3DGS files as they are; a
     method given is applied to whatever the file holds ("none": nothing).
 
@@ -381,8 +381,8 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     vertices (plyfile parses ASCII line by line in Python: ten times slower), else and for
     binary bodies by plyfile. Options that do not apply to what the file holds are an error.
     """
-    from ..normalise import check_method
-    from ..normalise import normalise as normalise_surfels
+    from ..prep.normalise import check_method
+    from ..prep.normalise import normalise as normalise_surfels
 
     if normalise is not None:
         check_method(normalise)
@@ -502,8 +502,8 @@ def _read_ascii_body(data: bytes, header: PlyHeader, source: str) -> dict | None
 
 
 def _point_surfels(path: Path, columns: dict, k, smooth, material, normalise) -> Surfels:
-    """Bare points (normals optional) to surfels through :mod:`dofsplat.pointcloud`."""
-    from ..pointcloud import points_to_surfels
+    """Bare points (normals optional) to surfels through :mod:`dofsplat.prep.pointcloud`."""
+    from ..prep.pointcloud import points_to_surfels
 
     _check_groups(path, columns, (COLOR, NORMAL))
     positions = _stack64(columns, ("x", "y", "z"))
@@ -540,7 +540,7 @@ def finite_rows(positions, *others, source: str = "", what="points") -> np.ndarr
 def _mesh_surfels(path: Path, header: PlyHeader, columns: dict, face: dict | None, count,
                   texture, material, smooth, normalise) -> Surfels:
     """A PLY triangle mesh (polygons split into fans) to surfels by sampling."""
-    from ..meshes import MeshPart, mesh_to_surfels
+    from ..prep.meshes import MeshPart, mesh_to_surfels
     from .mesh import load_texture
 
     if face is None:

@@ -44,7 +44,7 @@ import math
 import numba
 import numpy as np
 
-from .ewa import exponent, shared
+from .ewa import shared
 
 # the per-fragment functions are inlined at numba's level, like the Gaussian's forward
 # differences: a call per fragment costs as much as the kernel

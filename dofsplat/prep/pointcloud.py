@@ -33,7 +33,7 @@ neighbours (scipy's k-d tree), in five steps:
    h / sqrt(2)): r = h and weight = 1, the convention of ``surfels.py``. Radii are capped
    near outliers (a few points far from the rest).
 
-5. **normalisation**: the per-point normalisation of ``dofsplat.normalise`` (paper Section
+5. **normalisation**: the per-point normalisation of ``dofsplat.prep.normalise`` (paper Section
    6.3; the object-space method unless ``normalise`` says otherwise) corrects the weights so
    that the splats sum to 1 over the surface.
 
@@ -49,8 +49,9 @@ import warnings
 import numba
 import numpy as np
 
-from .errors import DofsplatError
-from .surfels import Surfels
+from ..errors import DofsplatError
+from ..surfels import Surfels
+from .neighbours import QUERY_CHUNK, fibonacci_directions, nearest_neighbours
 
 DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
 # quantisation needs that many for a steady plane fit (of its interior pixels, 0.93 / 0.96
@@ -63,7 +64,6 @@ CLUSTER_RADIUS_FACTOR = 2.0  # radius <= this x the distance to the 4th neighbou
 OUTLIER_RADIUS_FACTOR = 4.0  # radius <= this x the median radius of the cloud
 VORONOI_NEIGHBOURS = 10  # neighbours that cut a point's Voronoi cell (coverage radius)
 MID_GREY = 0.2140  # linear value of the sRGB mid grey 0.5: the colour of uncoloured points
-QUERY_CHUNK = 1 << 16  # points per k-d tree query, the unit of the progress bar
 VOTE_DIRECTIONS = 32  # views that vote for the sign of a component's normals
 VOTE_MAX_POINTS = 1 << 16  # points that take part in the vote (a random sample)
 TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is a tie
@@ -86,7 +86,7 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     smooth:    move each point along its normal onto the plane fitted to its k neighbours
                (:func:`project_to_planes`): removes scanner noise and coordinate
                quantisation across the surface; False keeps the positions as measured
-    normalise: the per-surfel normalisation (:func:`dofsplat.normalise.normalise`) that
+    normalise: the per-surfel normalisation (:func:`dofsplat.prep.normalise.normalise`) that
                makes the splats sum to 1 over the surface: "object" (default), "render",
                or "none" (the weights of step 4)
     progress:  show tqdm progress bars on stderr (only when it is a terminal)
@@ -160,28 +160,6 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
 
 
 # -- steps -------------------------------------------------------------------------------
-
-
-def nearest_neighbours(positions: np.ndarray, k: int, *, progress: bool = False,
-                       desc: str = "neighbours"):
-    """The k nearest neighbours of every point, the point itself first.
-
-    positions: (N, 3) float64. Returns (dist (N, k+1) float64, idx (N, k+1) int64): column
-    0 is the point itself (distance 0), columns 1..k its neighbours by increasing distance.
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(positions)
-    tree = cKDTree(positions)
-    dist = np.empty((n, k + 1), np.float64)
-    idx = np.empty((n, k + 1), np.int64)
-    with _progress_bar(n, desc, progress) as bar:
-        for start in range(0, n, QUERY_CHUNK):
-            stop = min(n, start + QUERY_CHUNK)
-            d, i = tree.query(positions[start:stop], k + 1, workers=-1)
-            dist[start:stop], idx[start:stop] = d, i
-            bar.update(stop - start)
-    return dist, idx
 
 
 def pca_normals(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -331,7 +309,6 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
     the votes' total weight: a single open sheet, seen alike from both sides) faces up
     (+y, the world's up), else +z, else +x.
     """
-    from .normalise import fibonacci_directions
 
     n = len(positions)
     rng = np.random.default_rng(seed)
@@ -661,14 +638,6 @@ def _check_k(k, n: int) -> int:
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < MIN_K:
         raise DofsplatError(f"k (neighbours) must be an integer >= {MIN_K}, got {k!r}")
     return int(min(k, n - 1))
-
-
-def _progress_bar(total: int, desc: str, enabled: bool):
-    from tqdm import tqdm
-
-    show = enabled and total > QUERY_CHUNK and sys.stderr.isatty()
-    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, file=sys.stderr,
-                disable=not show, leave=False)
 
 
 def _stage_bar(total: int, desc: str, enabled: bool):

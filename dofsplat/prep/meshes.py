@@ -37,7 +37,7 @@ spot covers more. Blue noise is not a grid: Gaussians of standard deviation h / 
 sum to 1 +- 0.1 on only 2/3 of a surface seen close up, and no weight per surfel can flatten
 the dips between samples. So the disks are RADIUS_SCALE x wider, r = 1.3 r_a, and
 ``Surfels.weight`` = 1 / 1.3^2 keeps the area each stands for (a splat deposits
-r^2 x weight). Then the per-surfel normalisation of :mod:`dofsplat.normalise` (paper
+r^2 x weight). Then the per-surfel normalisation of :mod:`dofsplat.prep.normalise` (paper
 Section 6.3; by default the object-space method) evens out the rest: on a square seen at 6
 pixels per sample spacing, 98 % of the pixels then sum to 1 +- 0.1, against 79 % with
 r = r_a (bench/RESULTS.md, "Sampled meshes in close-up").
@@ -51,9 +51,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .errors import DofsplatError
-from .io.colors import srgb_to_linear
-from .surfels import Material, Surfels
+from ..errors import DofsplatError
+from ..io.colors import srgb_to_linear
+from ..surfels import Material, Surfels
 
 DEFAULT_MIN_SAMPLES = 200_000  # default count: the vertex count, but at least this many
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)  # linear RGBA of a mesh without colour or texture
@@ -157,7 +157,7 @@ def mesh_to_surfels(parts: MeshPart | list[MeshPart], count: int | str | None = 
     smooth: samples lie on the Phong tessellation of the faces, which agrees with the
     interpolated normals (:func:`phong_positions`); False keeps them on the flat faces.
     Vertices lie on both, so it does not change ``count="vertices"``.
-    normalise: the per-surfel normalisation (:func:`dofsplat.normalise.normalise`):
+    normalise: the per-surfel normalisation (:func:`dofsplat.prep.normalise.normalise`):
     "object" (default), "render" or "none" (weights 1 / RADIUS_SCALE^2 as sampled).
     progress: progress bars on stderr for long steps (only when it is a terminal).
     Raises DofsplatError for a mesh without faces of non-zero area.

@@ -30,8 +30,9 @@ from dataclasses import replace
 import numba
 import numpy as np
 
-from .errors import DofsplatError
-from .surfels import Surfels
+from ..errors import DofsplatError
+from ..surfels import Surfels
+from .neighbours import fibonacci_directions, nearest_neighbours
 
 METHODS = ("none", "object", "render")
 NORMALISATION_CUTOFF = 4.0  # c for the normalisation kernels: the paper's 3.5 - 4
@@ -131,7 +132,7 @@ def object_sums(surfels: Surfels, weight=None, *, neighbours: int = OBJECT_NEIGH
 def object_sums_slow(surfels: Surfels, weight=None, *, neighbours: int = OBJECT_NEIGHBOURS,
                      smooth: float = OBJECT_SMOOTH) -> np.ndarray:
     """numpy twin of :func:`object_sums`, written from the formula in explicit frames."""
-    from .surfels import tangent_frame
+    from ..surfels import tangent_frame
 
     idx, _, _ = _object_setup(surfels, neighbours, smooth)
     w = _initial_weight(surfels) if weight is None else np.asarray(weight, np.float64)
@@ -178,7 +179,7 @@ def render_weights(surfels: Surfels, *, views: int = RENDER_VIEWS,
     is divided by the average; ``iterations`` rounds. Surfels no view reads keep their
     weight.
     """
-    from .render import render
+    from ..render import render
 
     views = _positive_int(views, "views")
     iterations = _positive_int(iterations, "iterations")
@@ -209,7 +210,7 @@ def render_weights(surfels: Surfels, *, views: int = RENDER_VIEWS,
 def normalisation_cameras(surfels: Surfels, views: int, max_size: int = RENDER_MAX_SIZE,
                           px_per_radius: float = RENDER_PX_PER_RADIUS):
     """The capture cameras: ``views`` directions on a Fibonacci sphere, narrow field of view."""
-    from .camera import Camera
+    from ..camera import Camera
 
     lo, hi = surfels.bounds()
     extent = 1.05 * float(np.linalg.norm(hi.astype(np.float64) - lo)) + 1e-12  # ~ view width
@@ -251,15 +252,6 @@ def read_back(result, camera, positions: np.ndarray, normals: np.ndarray,
                + ty * ((1 - tx) * wgt[i0 + 1, j0] + tx * wgt[i0 + 1, j0 + 1]))
     confidence = np.where(ok, cos * cos, 0.0)
     return np.where(ok, reading, 0.0), confidence
-
-
-def fibonacci_directions(n: int) -> np.ndarray:
-    """n unit vectors spread evenly over the sphere, (n, 3)."""
-    i = np.arange(n) + 0.5
-    z = 1 - 2 * i / n
-    phi = math.pi * (1 + 5 ** 0.5) * i
-    r = np.sqrt(1 - z * z)
-    return np.stack([r * np.cos(phi), z, r * np.sin(phi)], axis=1)
 
 
 # -- the uniformity metric ---------------------------------------------------------------
@@ -408,7 +400,6 @@ def _object_arrays(surfels: Surfels):
 
 def _object_setup(surfels: Surfels, neighbours: int, smooth: float):
     """Candidate neighbours (N, m), kernel arrays, and the receivers' smoothing variances."""
-    from .pointcloud import nearest_neighbours
 
     neighbours = _positive_int(neighbours, "neighbours")
     if not (math.isfinite(smooth) and smooth >= 0):
@@ -432,7 +423,7 @@ def _initial_weight(surfels: Surfels) -> np.ndarray:
 def _capture_settings(cutoff: float):
     import dataclasses
 
-    from .render import RenderSettings
+    from ..frame import RenderSettings
 
     wanted = {"cutoff": float(cutoff), "dof": False, "shading": "none", "lod": False}
     names = {f.name for f in dataclasses.fields(RenderSettings)}

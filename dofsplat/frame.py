@@ -1,0 +1,161 @@
+"""What a frame is, below every backend: its settings, its result, and the per-frame
+parameters that the CPU (``backends.cpu``) and GPU (``backends.cuda``) stages both derive
+from the settings, the camera and the lens (the CoC coefficients, the aperture's tables, the
+soft merge's parameters, the LOD tree and its palette). ``dofsplat.render`` dispatches a
+frame to a backend; nothing here imports one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import Camera
+from .errors import DofsplatError
+from .shading import HEADLIGHT, Light
+from .surfels import Surfels
+
+DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
+RECONSTRUCTIONS = ("soft", "paper")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to render; the defaults reproduce the paper's setup (c = 2.5, Phong, headlight)."""
+
+    cutoff: float = 2.5  # c: kernels are truncated where 1/2 x^T W^-1 x reaches c
+    dof: bool = True  # False renders a pinhole image whatever the lens
+    shading: str = "phong"  # "phong" or "none" (surfel colour unlit)
+    lights: tuple[Light, ...] = (HEADLIGHT,)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # linear RGB under everything
+    cull_backfaces: bool = True  # drop surfels whose normal faces away from the eye
+    z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
+    exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
+    max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
+    lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
+    lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
+    lod_blur_fraction: float = 1.0  # LOD: draw a node when its filter is at most this x the DOF blur (variance)
+    show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
+    device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
+    taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
+    reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
+
+    def __post_init__(self):
+        if not (math.isfinite(self.cutoff) and self.cutoff > 0):
+            raise DofsplatError(f"cutoff must be > 0, got {self.cutoff}")
+        if self.cutoff > 30:
+            raise DofsplatError(f"cutoff {self.cutoff} is unreasonably large (the kernel is below e^-30 there)")
+        if self.shading not in ("phong", "none"):
+            raise DofsplatError(f"shading must be 'phong' or 'none', got {self.shading!r}")
+        bg = np.asarray(self.background, float)
+        if bg.shape != (3,) or not np.all(np.isfinite(bg)) or np.any(bg < 0):
+            raise DofsplatError(f"background must be three numbers >= 0, got {self.background}")
+        if not (math.isfinite(self.z_thickness) and self.z_thickness >= 0):
+            raise DofsplatError(f"z_thickness must be >= 0, got {self.z_thickness}")
+        if self.max_tile_pairs < 1:
+            raise DofsplatError("max_tile_pairs must be positive")
+        if not (math.isfinite(self.lod_pixel_threshold) and self.lod_pixel_threshold >= 0):
+            raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
+        if not (math.isfinite(self.lod_blur_fraction) and 0 < self.lod_blur_fraction <= 1):
+            raise DofsplatError(f"lod_blur_fraction must be in (0, 1], got {self.lod_blur_fraction}")
+        if self.reconstruction not in RECONSTRUCTIONS:
+            raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
+                                f"got {self.reconstruction!r}")
+        if self.show_lod and not self.lod:
+            raise DofsplatError("show_lod needs lod=True")
+        if self.device not in DEVICES:
+            raise DofsplatError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
+
+
+@dataclass
+class RenderResult:
+    """A rendered frame.
+
+    image:  (H, W, 4) float32: linear RGB composited over the background, then alpha
+            (the total coverage, 1 - the background's remaining transmittance)
+    depth:  (H, W) float32: camera depth of the surface that contributes most to the
+            pixel, inf where nothing was drawn
+    weight: (H, W) float32: accumulated splat weight of the nearest surface (about 1 on a
+            well-normalised surface; Section 6.3)
+    stats:  points in, splats rendered, fragments, milliseconds per stage
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    weight: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def rgb(self) -> np.ndarray:
+        return self.image[..., :3]
+
+    @property
+    def alpha(self) -> np.ndarray:
+        return self.image[..., 3]
+
+
+# -- per-frame parameters, shared by the backends ----------------------------------------
+
+
+def lod_tree(surfels: Surfels, hierarchy=None):
+    """The model's LOD ``Hierarchy``: ``hierarchy`` if given (checked), else built or cached."""
+    from .lod import hierarchy_for
+
+    tree = hierarchy if hierarchy is not None else hierarchy_for(surfels)
+    if tree.n_surfels != len(surfels):
+        raise DofsplatError(f"the LOD hierarchy was built for {tree.n_surfels} surfels, "
+                            f"the model has {len(surfels)}")
+    return tree
+
+
+def lod_level_colors(level: np.ndarray) -> np.ndarray:
+    """(S, 3) float32 linear colours for LOD levels (0 = a surfel), for ``show_lod``."""
+    return LOD_PALETTE[np.minimum(level, len(LOD_PALETTE) - 1)]
+
+
+# one colour per LOD level, leaves first (sRGB designed, stored linear); the last repeats
+LOD_PALETTE = (np.array([
+    [0.85, 0.85, 0.85], [0.27, 0.46, 0.85], [0.16, 0.70, 0.86], [0.20, 0.75, 0.50],
+    [0.55, 0.82, 0.25], [0.95, 0.85, 0.20], [0.98, 0.60, 0.15], [0.92, 0.30, 0.20],
+    [0.80, 0.20, 0.55], [0.55, 0.25, 0.70], [0.35, 0.20, 0.45], [0.15, 0.15, 0.15],
+], np.float32) ** 2.2).astype(np.float32)
+
+
+def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float]:
+    """(K, 1/P) with C_r(U) = K |1/U - 1/P|; (0, 0) for a pinhole."""
+    if lens is None or not settings.dof:
+        return 0.0, 0.0
+    return lens.coc_coefficients(camera)
+
+
+def aperture_shape(lens, settings: RenderSettings):
+    """(disc, blades, table, moments): whether kernels carry the aperture's shape
+    (splat/bokeh.py), the (N, 2) edge normals of a polygonal aperture ((0, 2) for a round
+    one), the table of the Gaussian-disc convolution for this cutoff and its moments."""
+    from .splat.bokeh import aperture_moments, aperture_table, blade_normals
+
+    disc = lens is not None and settings.dof and getattr(lens, "bokeh", "gaussian") == "disc"
+    if not disc:  # no kernel reads the tables: none built (scipy.stats is not imported)
+        return False, np.zeros((0, 2)), np.zeros((1, 1)), np.zeros((1, 1))
+    blades = blade_normals(lens.blades, lens.blade_rotation)
+    return True, blades, aperture_table(settings.cutoff), aperture_moments(settings.cutoff)
+
+
+def kernel_floor(settings: RenderSettings) -> float:
+    """What a tapered (LOD node's) kernel loses everywhere inside its cutoff: e^-c, else 0."""
+    return math.exp(-settings.cutoff) if settings.taper else 0.0
+
+
+def merge_parameters(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float, float, float]:
+    """(K, 1/P, rho0, rho1) of the soft merge (``abuffer.merge_fraction``); K = 0 turns it off.
+
+    The paper's reconstruction, and a pinhole, composite separate surfaces with "over" only.
+    """
+    from .raster.abuffer import MERGE_RHO0, MERGE_RHO1
+
+    if settings.reconstruction == "paper":
+        return 0.0, 0.0, MERGE_RHO0, MERGE_RHO1
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    return coc_k, inv_focus, MERGE_RHO0, MERGE_RHO1
