@@ -288,7 +288,7 @@ def resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch, image, 
     weight[i, j] = res[5]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv_focus, rho0,
                   rho1):
     """Composite pixel p's surfaces front to back over the background.
@@ -396,15 +396,25 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     bg_r, bg_g, bg_b = background[0], background[1], background[2]
     round_aperture = blades.shape[0] == 0
     flat = table.reshape(-1)
+    # each thread's tile buffers, allocated once per band, not once per tile: a tile's
+    # A-buffer is 128 KiB, past malloc's mmap threshold, and a fresh mapping per tile (its
+    # page faults) cost 30 ms of a 1280 x 720 frame with nothing in it (bench/RESULTS.md)
+    pool = numba.config.NUMBA_NUM_THREADS
+    accs = np.empty((pool, TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
+    cnts = np.empty((pool, TILE * TILE), np.int64)
+    cells = np.empty((pool, TILE * TILE), np.int32)  # an aperture kernel's table cells
+    fracs = np.empty((pool, 2, TILE * TILE), np.float64)
+    ress = np.empty((pool, 7), np.float64)
+    orders = np.empty((pool, MAX_SURFACES), np.int64)
+    scratches = np.empty((pool, RESOLVE_SCRATCH), np.float64)
     for t in numba.prange(n_tiles):
         ty = ty0 + t // n_tx
         tx = t % n_tx
         px0, py0 = tx * TILE, ty * TILE
         px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
-        acc = np.empty((TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
-        cnt = np.zeros(TILE * TILE, np.int64)
-        cell = np.empty(TILE * TILE, np.int32)  # an aperture kernel's table cells per pixel
-        frac = np.empty((2, TILE * TILE), np.float64)
+        me = numba.get_thread_id()
+        acc, cnt, cell, frac = accs[me], cnts[me], cells[me], fracs[me]
+        cnt[:] = 0
         frags = 0
         overflows = 0
         for e in range(offsets[t], offsets[t + 1]):
@@ -475,9 +485,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     e *= f
                     f *= step2
                     p += 1
-        res = np.empty(7, np.float64)
-        order = np.empty(MAX_SURFACES, np.int64)
-        scratch = np.empty(RESOLVE_SCRATCH, np.float64)
+        res, order, scratch = ress[me], orders[me], scratches[me]
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)

@@ -1,0 +1,143 @@
+"""Where a CPU frame's time goes, stage by stage, and a big frame's memory (issue 15).
+
+    python bench/profile.py                      # plane, lion 1280x720, demo: a markdown table
+    python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
+    python bench/profile.py --json out.json      # the figures as JSON too
+
+Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
+aperture's disc, soft reconstruction): one warm-up frame (the JIT, the LOD hierarchy), then
+the median of ``--repeat`` frames per stage (``render().stats``): select (the LOD cut), shade,
+project (EWA kernels, normalisation), bin, front (the front pass and the splats'
+visibility), raster (rasterisation, A-buffer and resolve). "ns/frag" is the raster stage's
+time per fragment per thread (raster_ms x threads / fragments).
+
+The big scene (a 3,163 x 3,163 textured plane, 10,004,569 surfels, seen as the paper's plane)
+runs in a subprocess per frame so that its peak memory is the frame's own: the peak resident
+set is reset after the scene and its hierarchy are loaded (Linux /proc/self/clear_refs), and
+"frame peak" is the peak minus the resident set before the frame, per surfel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import numba
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import dofsplat as ds  # noqa: E402
+
+STAGES = ("select_ms", "shade_ms", "project_ms", "bin_ms", "front_ms", "raster_ms", "total_ms")
+APERTURES = {"plane": (0.0, 0.1, 0.4), "lion": (0.0, 0.5, 2.0), "demo": (0.0, 0.12, 0.3),
+             "big": (0.0, 0.1, 0.4)}
+BIG_SIDE = 3163  # surfels per side of the big plane: 10,004,569
+
+
+def scene(name: str):
+    from dofsplat.demo import PLANE_SIZE, demo_scene, plane_scene, textured_plane
+
+    if name == "plane":
+        return plane_scene(512, 512)
+    if name == "demo":
+        return demo_scene(800, 600)
+    if name == "lion":
+        from table1 import lion_scene
+
+        return lion_scene(None, 1280, 720)
+    _, camera, lens = plane_scene(1920, 1080)
+    return textured_plane(BIG_SIDE, PLANE_SIZE), camera, lens
+
+
+def frames(name: str, aperture: float, repeat: int) -> dict:
+    surfels, camera, lens = scene(name)
+    lens = dataclasses.replace(lens, aperture=aperture) if aperture > 0 else None
+    ds.render(surfels, camera, lens)  # the JIT, the hierarchy
+    runs = [ds.render(surfels, camera, lens).stats for _ in range(repeat)]
+    out = {k: statistics.median(r[k] for r in runs) for k in STAGES}
+    out["fragments"] = runs[0]["fragments"]
+    out["splats"] = runs[0]["splats_rendered"]
+    out["ns_per_fragment_thread"] = (out["raster_ms"] * 1e6 * numba.get_num_threads()
+                                     / max(out["fragments"], 1))
+    return out
+
+
+def big_frame(aperture: float, repeat: int) -> dict:
+    """One big frame in this process (called by the subprocess): times and memory."""
+    surfels, camera, lens = scene("big")
+    lens = dataclasses.replace(lens, aperture=aperture) if aperture > 0 else None
+    from dofsplat.lod import hierarchy_for
+
+    hierarchy_for(surfels)  # built or loaded before the frame, as a viewer holds it
+    ds.render(surfels, camera, lens)  # the JIT
+    before = _status("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # reset the peak resident set
+    runs = [ds.render(surfels, camera, lens).stats for _ in range(repeat)]
+    peak = _status("VmHWM")
+    out = {k: statistics.median(r[k] for r in runs) for k in STAGES}
+    out.update(fragments=runs[0]["fragments"], splats=runs[0]["splats_rendered"],
+               surfels=len(surfels), rss_before_mb=before / 1024, peak_mb=peak / 1024,
+               frame_peak_mb=(peak - before) / 1024,
+               frame_bytes_per_surfel=(peak - before) * 1024 / len(surfels))
+    return out
+
+
+def _status(field: str) -> int:
+    """A /proc/self/status figure in kB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no {field} in /proc/self/status")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=["plane", "lion", "demo"],
+                    choices=list(APERTURES))
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--json", help="write the figures here too")
+    ap.add_argument("--big-frame", type=float, help=argparse.SUPPRESS)  # the subprocess
+    args = ap.parse_args(argv)
+    if args.big_frame is not None:
+        print(json.dumps(big_frame(args.big_frame, args.repeat)))
+        return 0
+    print(f"{numba.get_num_threads()} threads, {os.cpu_count()} cores, numba {numba.__version__}")
+    print("| scene | A | splats | fragments | select | shade | project | bin | front | raster "
+          "| total (ms) | ns/frag/thread |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    records = []
+    for name in args.scenes:
+        for a in APERTURES[name]:
+            if name == "big":
+                done = subprocess.run([sys.executable, __file__, "--big-frame", str(a),
+                                       "--repeat", str(min(args.repeat, 3))],
+                                      capture_output=True, text=True, check=True)
+                r = json.loads(done.stdout.strip().splitlines()[-1])
+                r["ns_per_fragment_thread"] = (r["raster_ms"] * 1e6 * numba.get_num_threads()
+                                               / max(r["fragments"], 1))
+            else:
+                r = frames(name, a, args.repeat)
+            r.update(scene=name, aperture=a)
+            records.append(r)
+            print(f"| {name} | {a:g} | {r['splats']:,} | {r['fragments']:,} | "
+                  + " | ".join(f"{r[k]:.0f}" for k in STAGES)
+                  + f" | {r['ns_per_fragment_thread']:.1f} |", flush=True)
+            if name == "big":
+                print(f"|  | memory: {r['rss_before_mb']:.0f} MB before the frame, "
+                      f"peak {r['peak_mb']:.0f} MB: the frame's {r['frame_peak_mb']:.0f} MB = "
+                      f"{r['frame_bytes_per_surfel']:.0f} B per surfel |", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(records, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
