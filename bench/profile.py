@@ -2,6 +2,7 @@
 
     python bench/profile.py                      # plane, lion 1280x720, demo: a markdown table
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
+    python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
     python bench/profile.py --json out.json      # the figures as JSON too
 
 Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
@@ -38,7 +39,7 @@ import dofsplat as ds  # noqa: E402
 
 STAGES = ("select_ms", "shade_ms", "project_ms", "bin_ms", "front_ms", "raster_ms", "total_ms")
 APERTURES = {"plane": (0.0, 0.1, 0.4), "lion": (0.0, 0.5, 2.0), "demo": (0.0, 0.12, 0.3),
-             "big": (0.0, 0.1, 0.4)}
+             "big": (0.0, 0.1, 0.4), "empty": (0.0,)}
 BIG_SIDE = 3163  # surfels per side of the big plane: 10,004,569
 
 
@@ -53,6 +54,11 @@ def scene(name: str):
         from table1 import lion_scene
 
         return lion_scene(None, 1280, 720)
+    if name == "empty":  # a 1280 x 720 frame with nothing in view: the cost per pixel alone
+        _, camera, lens = plane_scene(1280, 720)
+        far = ds.Surfels(positions=[[0.0, 0.0, 50.0]], normals=[[0.0, 0.0, 1.0]], radius=[0.01],
+                         colors=[[1.0, 1.0, 1.0]])  # behind the camera
+        return far, camera, lens
     _, camera, lens = plane_scene(1920, 1080)
     return textured_plane(BIG_SIDE, PLANE_SIZE), camera, lens
 
