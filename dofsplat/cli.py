@@ -90,8 +90,11 @@ def run_render(args) -> int:
     from .io import load
 
     _check_arguments(args)
+    if args.output is None:
+        args.output = default_output(args.input)
     outputs = _check_outputs(args)
-    surfels = load(args.input, **_loader_options(args))
+    surfels = load(args.input, cache=_prep_cache(args), **_loader_options(args))
+    args.load_info = getattr(surfels, "load_info", None)
     if args.lod:
         from .lod.cache import cached_hierarchy
 
@@ -197,7 +200,7 @@ def run_convert(args) -> int:
     if Path(args.input).exists() and out.resolve() == Path(args.input).resolve():
         raise DofsplatError(f"the output {out} would overwrite the input")
     t0 = time.perf_counter()
-    surfels = load(args.input, **_loader_options(args))
+    surfels = load(args.input, cache=_prep_cache(args), **_loader_options(args))
     save_surfels(out, surfels)
     if not args.quiet:
         how = args.normalise or _default_normalisation(Path(args.input))
@@ -213,6 +216,12 @@ def _render_and_write(args, outputs, surfels, camera, default_focus: float,
     from .render import focus_distance_at
 
     settings = _settings(args)
+    if not args.quiet and settings.device != "cuda":
+        from .backends.cpu import COMPILE_SECONDS, kernels_compiled
+
+        if not kernels_compiled():
+            print(f"dofsplat: compiling the rendering kernels, once (about {COMPILE_SECONDS} s "
+                  "on 2 cores; numba keeps them for later runs)", file=sys.stderr, flush=True)
     lens, focus_source = None, None
     if settings.dof:
         if args.focus is not None:
@@ -225,6 +234,10 @@ def _render_and_write(args, outputs, surfels, camera, default_focus: float,
         lens = _lens(args, focus, default_aperture)
 
     result = _render_by_method(args, surfels, camera, lens, settings)
+    info = getattr(args, "load_info", None)
+    if info is not None:  # the model's loading and preparation, before the frame
+        result.stats["load_ms"] = info["seconds"] * 1000.0
+        result.stats["load_from_cache"] = bool(info["from_cache"])
 
     write_image(outputs["image"], result.image, depth=result.depth)
     if "depth" in outputs:
@@ -413,11 +426,18 @@ def _write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
 
 
 def _summary(paths: list[Path], stats: dict) -> str:
-    """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``"""
+    """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``,
+    and for a model file how long loading took: ``...; model loaded in 6.1 s`` or
+    ``...; model from the cache in 0.02 s``."""
     samples = f"{stats['samples']} lens samples, " if "samples" in stats else ""
+    load = ""
+    if "load_ms" in stats:
+        how = "from the cache in" if stats["load_from_cache"] else "loaded in"
+        load = f"; model {how} {stats['load_ms'] / 1000:.2f} s"
     return (f"wrote {', '.join(str(p) for p in paths)} ({stats['width']}x{stats['height']}, "
             f"{stats['points_in']:,} points, {stats['splats_rendered']:,} splats, "
-            f"{samples}{_count(stats['fragments'])} fragments, {stats['total_ms'] / 1000:.2f} s)")
+            f"{samples}{_count(stats['fragments'])} fragments, "
+            f"{stats['total_ms'] / 1000:.2f} s{load})")
 
 
 def _count(n: int) -> str:
@@ -476,9 +496,10 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("input", metavar="INPUT",
                         help="model file: surfels, points, a mesh or 3D Gaussian splats: "
                              + ", ".join(_MODEL_EXTENSIONS) + " (docs/formats.md)")
-    render.add_argument("-o", "--output", metavar="OUTPUT", required=True,
+    render.add_argument("-o", "--output", metavar="OUTPUT",
                         help="image to write: .png (8-bit sRGB), .npy (float32 linear RGBA, "
-                             "H x W x 4) or .exr (float32 linear RGBA + Z)")
+                             "H x W x 4) or .exr (float32 linear RGBA + Z) (default: the "
+                             "model's name with .png, in the current folder)")
     _add_input_options(render)
     _add_view_options(render, "render")
     render.set_defaults(run=run_render)
@@ -562,8 +583,48 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(convert)
     convert.set_defaults(run=run_convert)
 
+    cache = commands.add_parser(
+        "cache", allow_abbrev=False, formatter_class=_HelpFormatter,
+        help="show or clear the cache of prepared models and LOD hierarchies",
+        description="Show where dofsplat keeps prepared models (point clouds and meshes "
+                    "made into surfels) and LOD hierarchies, and how much room they take; "
+                    "or clear it. The cache holds at most 2 GB unless DOFSPLAT_CACHE_MAX says "
+                    "otherwise (e.g. 500M, 10G; 0 turns it off); the least recently used "
+                    "files go first.",
+        epilog="examples:\n  dofsplat cache\n  dofsplat cache --clear\n"
+               "  dofsplat cache --clear lod")
+    cache.add_argument("--info", action="store_true",
+                       help="show the folder, the files and their size (the default)")
+    cache.add_argument("--clear", nargs="?", const="all", choices=("all", "surfels", "lod"),
+                       help="delete the cached files: all (the default), or one kind")
+    cache.set_defaults(run=run_cache)
+
     parser.set_defaults(run=_no_command)
     return parser
+
+
+def run_cache(args) -> int:
+    """``dofsplat cache``: the cache's folder and size; --clear empties it."""
+    from . import cache
+
+    root = cache.cache_root()
+    if args.clear is not None:
+        kind = None if args.clear == "all" else args.clear
+        n, size = cache.clear_cache(kind)
+        print(f"removed {n:,} file{'s' * (n != 1)} ({cache.format_bytes(size)}) from {root}")
+        return EXIT_OK
+    info = cache.cache_info()
+    limit = cache.max_bytes()
+    print(f"cache folder: {root}")
+    for kind, what in cache.KINDS.items():
+        n, size = info[kind]
+        print(f"  {kind + '/':10s}{what}: {n:,} file{'s' * (n != 1)}, {cache.format_bytes(size)}")
+    n, size = info["total"]
+    cap = "off (DOFSPLAT_CACHE_MAX=0)" if limit == 0 else cache.format_bytes(limit)
+    print(f"  total: {cache.format_bytes(size)} of at most {cap}; least recently used files "
+          "go first (DOFSPLAT_CACHE_MAX sets the cap, DOFSPLAT_CACHE_DIR the folder)")
+    print("  'dofsplat cache --clear' empties it (or --clear surfels, --clear lod)")
+    return EXIT_OK
 
 
 def _no_command(args) -> int:
@@ -603,6 +664,27 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                             "paper's: weights read back from renders, slower) or none. "
                             "Default: object for points and meshes; a surfel or 3DGS file is "
                             "taken as it is")
+    group.add_argument("--no-cache", action="store_true",
+                       help="prepare the model again: neither read nor keep it in the cache "
+                            "of prepared models (a point cloud or mesh that took over "
+                            "0.5 s to prepare is kept there, keyed by the file's content and "
+                            "these options; 'dofsplat cache' shows and clears it)")
+
+
+def _prep_cache(args) -> str:
+    """load()'s cache: "off" with --no-cache."""
+    return "off" if getattr(args, "no_cache", False) else "auto"
+
+
+def default_output(model: str) -> str:
+    """``render``'s output without -o: the model's name with .png, in the current folder
+    (``scans/lion.laz`` -> ``lion.png``, ``dragon.ply.gz`` -> ``dragon.png``)."""
+    name = Path(model).name
+    for ext in sorted(_MODEL_EXTENSIONS, key=len, reverse=True):
+        if name.lower().endswith(ext):
+            name = name[:-len(ext)]
+            break
+    return (name or "render") + ".png"
 
 
 def _loader_options(args) -> dict:
@@ -642,7 +724,7 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
 
     is_demo = command == "demo"
     w, h = DEFAULT_SIZE.get(command, DEFAULT_SIZE["render"])
-    demo_size = " (with --demo: {}x{})".format(*DEFAULT_SIZE["demo"]) if command == "reference" else ""
+    demo_size = "; with --demo: {}x{}".format(*DEFAULT_SIZE["demo"]) if command == "reference" else ""
 
     out = p.add_argument_group("more outputs")
     out.add_argument("--depth", metavar="FILE",

@@ -11,8 +11,10 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 @pytest.fixture(scope="session", autouse=True)
 def _private_cache(tmp_path_factory):
-    """Keep LOD hierarchies that the CLI caches out of the user's ~/.cache."""
+    """Keep what the CLI caches out of the user's ~/.cache, and cache nothing unless a test
+    asks (a prepared model read back would skip the preparation a test is about)."""
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))
+    os.environ["DOFSPLAT_CACHE_MAX"] = "0"
 
 
 @pytest.fixture(scope="session", autouse=True)

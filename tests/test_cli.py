@@ -291,7 +291,6 @@ BAD_RENDER = {
     "background-range": (["render", "{ply}", "-o", "out.png", "--background", "2", "0",
                           "0"], None),
     "eye-too-few": (["render", "{ply}", "-o", "out.png", "--eye", "1", "2"], None),
-    "no-output": (["render", "{ply}"], None),
     "unknown-option": (["render", "{ply}", "-o", "out.png", "--bogus"], None),
     "shading-choice": (["render", "{ply}", "-o", "out.png", "--shading", "flat"], None),
     "no-command": ([], None),

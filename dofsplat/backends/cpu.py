@@ -212,6 +212,19 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
 # -- helpers -----------------------------------------------------------------------------
 
 _WARM = False
+COMPILE_SECONDS = 30  # a cold first run on the developers' 2-core machine (README)
+
+
+def kernels_compiled() -> bool:
+    """Whether numba's disk cache holds the rasteriser for the current source; False on a
+    first run (or after an upgrade), when ``warm_up`` compiles every kernel: about
+    COMPILE_SECONDS. Reads numba's cache index (a private interface): True if it cannot."""
+    try:
+        from ..raster.abuffer import rasterize_band
+
+        return bool(rasterize_band._cache._cache_file._load_index())
+    except Exception:  # noqa: BLE001 - a changed numba: say nothing rather than fail
+        return True
 
 
 def warm_up() -> None:

@@ -22,6 +22,7 @@ from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path
                      check_writable_path, read_image, write_depth, write_image)
 from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
+from . import prepared
 from .pcd import PCD_EXTENSIONS, read_pcd
 from .ply import read_ply, read_surfel_ply, write_surfel_ply
 
@@ -45,8 +46,14 @@ __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
 
 
-def load(path, **options) -> Surfels:
+def load(path, cache: str = "auto", **options) -> Surfels:
     """Load a surfel model, choosing the loader by the file's extension.
+
+    cache: "auto" keeps a model that took preparation (over ``prepared.MIN_SECONDS``: the
+    normals, radii and normalisation of a point cloud, a mesh's sampling) in the user's
+    cache folder and reads it from there next time, keyed by the file's content, the
+    options and the preparation code (``dofsplat.cache``); "off" always prepares it.
+    ``surfels.load_info`` says how long loading took and whether it came from the cache.
 
     options are passed to the loader: ``material`` for all; ``points`` (sample count or
     "vertices") and ``texture`` (an image file) for meshes; ``k`` (neighbours for normals
@@ -64,7 +71,9 @@ def load(path, **options) -> Surfels:
         raise DofsplatError(f"not a file: {path}")
     loader = LOADERS[_extension(path, LOADERS, "model")]
     _check_options(loader, path, options)
-    return loader(path, **options)
+    if cache not in ("auto", "off"):
+        raise DofsplatError(f"cache must be 'auto' or 'off', got {cache!r}")
+    return prepared.load_prepared(path, loader, options, use_cache=cache == "auto")
 
 
 def save_surfels(path, surfels: Surfels, **options) -> Path:

@@ -1,0 +1,160 @@
+"""The disk cache (dofsplat.cache, io.prepared) and the newcomer's defaults around it
+(issue 18, items 4 to 6): prepared models read back, keyed by content and options, the size
+cap, ``dofsplat cache``, the summary's loading time, ``render`` without -o, the first
+run's compilation notice."""
+
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+import pytest
+from plyfile import PlyData, PlyElement
+
+from dofsplat import cache, cli
+from dofsplat.io import LOADERS, load, prepared
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    """A private cache that is on (the suite's conftest turns caching off), and every model
+    worth keeping (no minimum preparation time)."""
+    monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "1G")
+    monkeypatch.setattr(prepared, "MIN_SECONDS", 0.0)
+    return tmp_path / "cache"
+
+
+def write_points(path, lift=0.0):
+    """Bare points (no normals, no radii): a 40 x 40 grid, so loading prepares surfels."""
+    g = np.linspace(-1, 1, 40)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    rng = np.random.default_rng(0)
+    v = np.zeros(x.size, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    v["x"], v["y"], v["z"] = x, y, 0.01 * rng.standard_normal(x.size) + lift
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+    return path
+
+
+@pytest.fixture
+def points_ply(tmp_path):
+    return write_points(tmp_path / "grid points.ply")
+
+
+@pytest.fixture
+def counted_loader(monkeypatch):
+    """The PLY loader, counting its calls (a cache hit does not call it)."""
+    calls = []
+    real = LOADERS[".ply"]
+
+    def loader(path, **options):
+        calls.append(options)
+        return real(path, **options)
+
+    loader.__wrapped__ = real  # the same signature for load()'s option check
+    monkeypatch.setitem(LOADERS, ".ply", loader)
+    return calls
+
+
+def test_a_prepared_model_comes_back_from_the_cache(cache_dir, points_ply, counted_loader):
+    first = load(points_ply)
+    assert not first.load_info["from_cache"] and len(counted_loader) == 1
+    again = load(points_ply)
+    assert again.load_info["from_cache"] and len(counted_loader) == 1  # not prepared again
+    for name in ("positions", "normals", "radius", "colors", "opacity", "weight"):
+        a, b = getattr(first, name), getattr(again, name)
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_array_equal(a, b)
+    assert again.material == first.material
+    # other options, other content, or the cache off: prepared again
+    load(points_ply, k=12)
+    assert len(counted_loader) == 2
+    load(points_ply, cache="off")
+    assert len(counted_loader) == 3
+    write_points(points_ply, lift=0.001)  # the same name, other content
+    assert not load(points_ply).load_info["from_cache"] and len(counted_loader) == 4
+    assert cache.cache_info()["surfels"][0] == 3  # default, k=12, the changed file
+
+
+def test_a_damaged_cache_file_is_prepared_again(cache_dir, points_ply, counted_loader):
+    load(points_ply)
+    (entry,) = cache.cached_files("surfels")
+    entry.write_bytes(b"not an npz")
+    assert not load(points_ply).load_info["from_cache"] and len(counted_loader) == 2
+    assert load(points_ply).load_info["from_cache"]  # replaced by a good one
+
+
+def test_the_cap_evicts_the_least_recently_used_first(cache_dir):
+    files = []
+    for i, kind in enumerate(["surfels", "lod", "surfels", "lod"]):
+        folder = cache.cache_folder(kind)
+        folder.mkdir(parents=True, exist_ok=True)
+        p = folder / f"{i}.npz"
+        p.write_bytes(b"x" * 1000)
+        os.utime(p, (1000 + i, 1000 + i))  # file 0 is the oldest
+        files.append(p)
+    cache.touch(files[0])  # just used: now the newest
+    gone = cache.enforce_cap(limit=2500, keep=files[3])
+    assert gone == [files[1], files[2]]
+    assert files[0].exists() and files[3].exists()
+    assert cache.cache_info()["total"] == (2, 2000)
+    assert cache.parse_size("1.5k") == 1536 and cache.parse_size("2G") == 2 << 30
+
+
+def test_the_cap_of_zero_turns_the_cache_off(cache_dir, points_ply, counted_loader,
+                                              monkeypatch):
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "0")
+    load(points_ply)
+    load(points_ply)
+    assert len(counted_loader) == 2 and cache.cached_files() == []
+
+
+def test_cli_cache_info_and_clear(cache_dir, points_ply, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = ["render", str(points_ply), "--size", "64x48"]
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    # render without -o writes the model's name with .png, here; the summary says how long
+    # the model took to load
+    assert (tmp_path / "grid points.png").exists()
+    assert re.search(r"model loaded in \d+\.\d\d s\)$", err.strip())
+    assert cli.main(argv + ["-o", "again.png"]) == 0
+    assert re.search(r"model from the cache in \d+\.\d\d s\)$", capsys.readouterr().err.strip())
+    assert cli.main(["cache"]) == 0
+    out = capsys.readouterr().out
+    assert str(cache_dir) in out and re.search(r"surfels/ +prepared models: 1 file, ", out)
+    assert re.search(r"lod/ +LOD hierarchies: 1 file, ", out)
+    assert cli.main(["cache", "--clear", "lod"]) == 0
+    assert "removed 1 file" in capsys.readouterr().out
+    assert cli.main(["cache", "--clear"]) == 0
+    assert cache.cached_files() == []
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "lots")
+    assert cli.main(argv) == 2
+    assert "DOFSPLAT_CACHE_MAX: expected a size" in capsys.readouterr().err
+
+
+def test_default_output_names():
+    assert cli.default_output("scans/lion.laz") == "lion.png"
+    assert cli.default_output("dragon_vrip.ply.gz") == "dragon_vrip.png"
+    assert cli.default_output("/a/b/Model.OBJ") == "Model.png"
+
+
+def test_reference_help_names_both_default_sizes(capsys):
+    assert cli.main(["reference", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 512x512; with --demo: 800x600)" in text
+
+
+def test_the_first_run_says_that_it_compiles(tmp_path, monkeypatch, capsys):
+    from dofsplat.backends import cpu
+
+    assert cpu.kernels_compiled()  # this session's kernels are in numba's cache
+    monkeypatch.setattr(cpu, "kernels_compiled", lambda: False)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["demo", "--size", "48x36", "-o", "d.png"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("dofsplat: compiling the rendering kernels, once (about 30 s")
+    assert cli.main(["demo", "--size", "48x36", "-o", "d.png", "-q"]) == 0
+    assert capsys.readouterr().err == ""
