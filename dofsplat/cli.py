@@ -634,7 +634,7 @@ def _no_command(args) -> int:
 
 # what ``render`` reads, for the help texts (dofsplat.io.LOADERS holds the loaders)
 _MODEL_EXTENSIONS = (".ply", ".ply.gz", ".obj", ".gltf", ".glb", ".stl", ".off", ".las", ".laz",
-                     ".pcd")
+                     ".e57", ".pcd")
 
 
 def _add_input_options(p: argparse.ArgumentParser) -> None:
@@ -649,7 +649,7 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                        help="meshes: an image applied through the texture coordinates "
                             "(for an OBJ that names no material file)")
     group.add_argument("--k", metavar="K", type=_positive_int,
-                       help="point clouds (PLY without faces, LAS/LAZ, PCD): neighbours for "
+                       help="point clouds (PLY without faces, LAS/LAZ, E57, PCD): neighbours for "
                             "the normals, smoothing and radii (default: 24)")
     group.add_argument("--no-smooth", dest="smooth", action="store_false", default=None,
                        help="point clouds: keep the positions as measured (default: each "

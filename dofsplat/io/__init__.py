@@ -20,6 +20,7 @@ from ..surfels import Surfels
 from .colors import linear_to_srgb, srgb_to_linear
 from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
                      check_writable_path, read_image, write_depth, write_image)
+from .e57 import E57_EXTENSIONS, read_e57
 from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
 from . import prepared
@@ -32,6 +33,7 @@ LOADERS: dict[str, Callable[..., Surfels]] = {
     ".ply.gz": read_ply,
     **{ext: read_mesh for ext in MESH_EXTENSIONS},
     **{ext: read_las for ext in LAS_EXTENSIONS},
+    **{ext: read_e57 for ext in E57_EXTENSIONS},
     **{ext: read_pcd for ext in PCD_EXTENSIONS},
 }
 
@@ -42,7 +44,7 @@ SAVERS: dict[str, Callable[..., object]] = {
 
 __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
            "check_output_path", "check_writable_path", "linear_to_srgb", "load", "read_image",
-           "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
+           "read_e57", "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
 
 

@@ -80,8 +80,8 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
                None) are estimated by PCA. Given normals keep their sign unless
                ``viewpoint`` is given.
     k:         neighbours for PCA and the density (default ``DEFAULT_K`` = 24; at least 4)
-    viewpoint: (3,) sensor or camera position, world units: every normal is turned towards
-               it. None: estimated normals are oriented consistently by propagation over
+    viewpoint: (3,) sensor or camera position, world units, or (N, 3), one per point (the
+               scans of a multi-scan capture): every normal is turned towards it. None: estimated normals are oriented consistently by propagation over
                the neighbour graph (outward for closed surfaces); given normals seed it.
     smooth:    move each point along its normal onto the plane fitted to its k neighbours
                (:func:`project_to_planes`): removes scanner noise and coordinate
@@ -103,17 +103,22 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
 
     check_method(normalise)
     pts, cols, nrm = _check_inputs(positions, colors, normals, source)
-    pts, cols, nrm = _merge_duplicates(pts, cols, nrm, source)
+    n_in = len(pts)
+    vp = None
+    if viewpoint is not None:
+        vp = np.asarray(viewpoint, np.float64)
+        if vp.shape not in ((3,), (n_in, 3)) or not np.all(np.isfinite(vp)):
+            raise DofsplatError(f"viewpoint must be three finite numbers, or one such row per "
+                                f"point, got an array of shape {vp.shape}" if vp.ndim else
+                                f"viewpoint must be three finite numbers, got {viewpoint!r}")
+    pts, cols, nrm, kept = _merge_duplicates(pts, cols, nrm, source)
+    if vp is not None and vp.ndim == 2 and kept is not None:
+        vp = vp[kept]
     n = len(pts)
     if n < 3:
         raise DofsplatError(f"{source}: need at least 3 distinct points to estimate normals "
                             f"and radii, got {n}")
     k = _check_k(k, n)
-    vp = None
-    if viewpoint is not None:
-        vp = np.asarray(viewpoint, np.float64)
-        if vp.shape != (3,) or not np.all(np.isfinite(vp)):
-            raise DofsplatError(f"viewpoint must be three finite numbers, got {viewpoint!r}")
 
     stages = 4 if normalise == "none" else 5
     with _stage_bar(stages, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
@@ -231,7 +236,8 @@ def pca_normals_slow(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def orient_towards(positions: np.ndarray, normals: np.ndarray, viewpoint) -> np.ndarray:
-    """Flip each normal so that it faces ``viewpoint`` (3,): n . (viewpoint - p) >= 0."""
+    """Flip each normal so that it faces ``viewpoint`` (3,) or its row of (N, 3):
+    n . (viewpoint - p) >= 0."""
     facing = np.sum(normals * (np.asarray(viewpoint, np.float64) - positions), axis=1)
     return np.where((facing < 0)[:, None], -normals, normals)
 
@@ -613,10 +619,11 @@ def _row_keys(pts: np.ndarray) -> np.ndarray:
 
 
 def _merge_duplicates(pts, cols, nrm, source):
-    """Merge points at exactly the same position: first normal, mean colour."""
+    """Merge points at exactly the same position: first normal, mean colour. Returns the
+    points, colours, normals and the input rows kept (None when none were merged)."""
     _, first, inverse = np.unique(_row_keys(pts), return_index=True, return_inverse=True)
     if len(first) == len(pts):
-        return pts, cols, nrm
+        return pts, cols, nrm, None
     inverse = inverse.ravel()
     order = np.sort(first)  # keep the input order of first occurrences
     remap = np.empty(len(first), np.int64)
@@ -629,7 +636,7 @@ def _merge_duplicates(pts, cols, nrm, source):
         out_cols = np.stack([np.bincount(group, cols[:, c], len(order)) / counts
                              for c in range(3)], axis=1).astype(np.float32)
     out_nrm = None if nrm is None else nrm[order]
-    return out_pts, out_cols, out_nrm
+    return out_pts, out_cols, out_nrm, order
 
 
 def _check_k(k, n: int) -> int:
