@@ -103,10 +103,18 @@ def run_render(args) -> int:
                          log=log)
     lo, hi = surfels.bounds()
     half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
-    width, height = args.size or DEFAULT_SIZE["render"]
-    base = _framing_camera(args, lo, hi, width, height)
-    camera = _camera(args, base)
-    default_focus = math.dist(camera.eye, camera.target)
+    capture = getattr(surfels, "capture", None)
+    placed = any(getattr(args, a) is not None for a in ("eye", "target", "up", "fov", "frustum"))
+    if capture is not None and not placed:
+        # a depth camera's capture: seen from its sensor, through its own frustum
+        base = _capture_camera(capture, args.size)
+        camera = _camera(args, base)
+        default_focus = _median_depth(surfels, camera)
+    else:
+        width, height = args.size or DEFAULT_SIZE["render"]
+        base = _framing_camera(args, lo, hi, width, height)
+        camera = _camera(args, base)
+        default_focus = math.dist(camera.eye, camera.target)
     return _render_and_write(args, outputs, surfels, camera, default_focus,
                              default_aperture=APERTURE_PER_HALF_DIAGONAL * half_diagonal)
 
@@ -285,14 +293,42 @@ def _framing_camera(args, lo, hi, width: int, height: int):
     return Camera.framing(lo, hi, width, height, fov, direction=direction, up=up)
 
 
+def _capture_camera(capture: dict, size):
+    """The sensor's camera of a depth capture (``io.pcd.capture_grid``), at the capture's
+    pixel size or ``size``, the frustum widened or narrowed about its centre to that aspect."""
+    from .camera import Camera
+
+    w0, h0 = (int(v) for v in capture["size"])
+    width, height = size or (w0, h0)
+    left, right, bottom, top, near = (float(v) for v in capture["frustum"])
+    centre, half = 0.5 * (left + right), 0.5 * (top - bottom) * width / height
+    return Camera(eye=tuple(capture["eye"]), target=tuple(capture["target"]),
+                  up=tuple(capture["up"]), width=width, height=height, fov_y=None,
+                  frustum=(centre - half, centre + half, bottom, top, near))
+
+
+def _median_depth(surfels, camera) -> float:
+    """The median camera depth of the surfels in front of the camera: a capture's default
+    focus (its middle distance)."""
+    import numpy as np
+
+    forward = np.subtract(camera.target, camera.eye)
+    forward = forward / np.linalg.norm(forward)
+    depth = (surfels.positions.astype(np.float64) - camera.eye) @ forward
+    depth = depth[depth > 0]
+    return float(np.median(depth)) if depth.size else math.dist(camera.eye, camera.target)
+
+
 def _camera(args, base):
     """``base`` (the framing or the scene's camera) with the user's options applied."""
     from .camera import Camera
 
+    # the base's own frustum (a capture's) holds unless the user gives a view
+    frustum = args.frustum if args.frustum is not None else (None if args.fov else base.frustum)
     return Camera(eye=args.eye or base.eye, target=args.target or base.target,
                   up=args.up or base.up, width=base.width, height=base.height,
                   fov_y=args.fov or base.fov_y or DEFAULT_FOV_DEG,
-                  frustum=args.frustum, near=base.near)
+                  frustum=frustum, near=base.near)
 
 
 def _lens(args, focus: float, default_aperture: float):

@@ -692,6 +692,44 @@ def test_pcd_organised_cloud_with_nan_and_normals(tmp_path, captured_points):
     np.testing.assert_allclose(s.normals[:, 2], 1.0, atol=1e-6)  # towards the sensor
 
 
+def test_pcd_capture_is_seen_from_its_sensor(tmp_path, capsys):
+    """An organised cloud (a 64 x 48 depth capture with an off-centre principal point:
+    a wall 2 m away with a box in front, some pixels without depth): the intrinsics are
+    recovered from the grid, and ``dofsplat render`` without camera options sees it from
+    the sensor, pixel for pixel: the depth drawn at every pixel with depth is the capture's
+    (to 0.5 %: splats overlap their neighbours by the prefilter), the size is the grid's."""
+    from dofsplat import cli
+
+    w, h, fx, fy, cx, cy = 64, 48, 60.0, 58.0, 30.0, 21.0
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = np.full((h, w), 2.0)
+    z[14:30, 20:40] = 1.5  # the box
+    z[::7, ::11] = np.nan  # pixels without depth
+    x, y = (u - cx) / fx * z, (v - cy) / fy * z
+    path = tmp_path / "capture.pcd"
+    path.write_bytes(pcd_bytes(["x", "y", "z"], ["F"] * 3, [4] * 3,
+                               [x.ravel(), y.ravel(), z.ravel()], width=w, height=h))
+    s = load(path, normalise="none")
+    cam = s.capture
+    np.testing.assert_allclose(cam["size"], [w, h])
+    near = cam["frustum"][4]
+    np.testing.assert_allclose(cam["frustum"][:4] / near,
+                               [(-0.5 - cx) / fx, (w - 0.5 - cx) / fx, -(h - 0.5 - cy) / fy,
+                                (0.5 + cy) / fy], rtol=1e-4)
+    status = cli.main(["render", str(path), "-o", str(tmp_path / "c.png"), "--no-dof",
+                       "--depth", str(tmp_path / "d.npy"), "-q"])
+    assert status == 0
+    depth = np.load(tmp_path / "d.npy")
+    assert depth.shape == (h, w)
+    valid = np.isfinite(z)
+    # inside the box and on the wall above it: away from the box's outline, where a pixel
+    # may show the nearer surface's splat
+    interior = np.zeros_like(valid)
+    interior[16:28, 22:38] = True
+    interior[:10, :] = True
+    np.testing.assert_allclose(depth[interior & valid], z[interior & valid], rtol=5e-3)
+
+
 def test_pcd_header_errors():
     ok = b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\n"
     assert parse_pcd_header(ok + b"DATA ascii\n").points == 2

@@ -85,15 +85,19 @@ def read_pcd(path, *, material: Material | None = None, k: int | None = None,
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
     header, columns = read_pcd_columns(path)
-    positions, colors, normals, viewpoint = pcd_points(header, columns, str(path))
+    positions, colors, normals, viewpoint, camera = pcd_points(header, columns, str(path))
     surfels = points_to_surfels(positions, colors, normals, k=k, viewpoint=viewpoint,
                                 smooth=smooth, normalise=normalise, source=str(path))
-    return surfels if material is None else replace(surfels, material=material)
+    surfels = surfels if material is None else replace(surfels, material=material)
+    if camera is not None:
+        surfels.capture = camera  # the CLI's default view: the sensor's
+    return surfels
 
 
 def pcd_points(header: PcdHeader, columns: dict, source: str):
     """(positions (N, 3) float64, colours (N, 3) linear or None, normals or None,
-    viewpoint (3,)) of the valid points, organised clouds turned into dofsplat's frame."""
+    viewpoint (3,), camera) of the valid points, organised clouds turned into dofsplat's
+    frame; camera: ``capture_camera`` for an organised cloud, else None."""
     from .colors import srgb_to_linear
     from .ply import finite_rows
 
@@ -118,11 +122,13 @@ def pcd_points(header: PcdHeader, columns: dict, source: str):
     known = header.organised or header.viewpoint != _DEFAULT_VIEWPOINT
     viewpoint = np.asarray(header.viewpoint[:3], dtype=np.float64) if known else None
 
+    camera = None
     if header.organised:
         # pixels without depth are NaN: expected, so dropped without a warning
-        keep = np.all(np.isfinite(positions), axis=1)
+        keep = np.all(np.isfinite(positions), axis=1) & (positions[:, 2] > 0)
         if not keep.any():
             raise DofsplatError(f"{source}: no valid points (all {len(keep):,} are NaN)")
+        camera = capture_camera(positions, keep, header.width, header.height, viewpoint)
         positions = positions[keep]
         colors = None if colors is None else colors[keep]
         normals = None if normals is None else normals[keep]
@@ -134,7 +140,42 @@ def pcd_points(header: PcdHeader, columns: dict, source: str):
         normals = np.where(np.all(np.isfinite(normals), axis=1)[:, None], normals, 0.0)[keep]
     positions = positions[keep]
     colors = None if colors is None else colors[keep]
-    return positions, colors, normals, viewpoint
+    return positions, colors, normals, viewpoint, camera
+
+
+def capture_camera(positions: np.ndarray, valid: np.ndarray, width: int, height: int,
+                   viewpoint: np.ndarray) -> dict:
+    """The depth camera that made an organised cloud, from its pixel grid.
+
+    positions: (W H, 3) in the optical frame (x right, y down, z forward), NaN where the
+    pixel has no depth; valid: the pixels with depth. A pinhole camera maps a point to pixel
+    u = f_x x / z + c_x, v = f_y y / z + c_y: the intrinsics are fitted to the valid pixels
+    by least squares. Returns the sensor's view in dofsplat's frame (turned as the points
+    are): eye, target, up, frustum (L, R, B, T, N) and size (W, H), for the CLI's default
+    camera, which then sees the capture as the sensor did, pixel for pixel."""
+    v_idx, u_idx = np.divmod(np.flatnonzero(valid), width)
+    p = positions[valid]
+    fx, cx = _fit_line(p[:, 0] / p[:, 2], u_idx)
+    fy, cy = _fit_line(p[:, 1] / p[:, 2], v_idx)
+    if not (fx > 0 and fy > 0):  # a degenerate grid (one column, a flipped image)
+        fx = fy = max(width, height) / (2.0 * np.tan(np.radians(30.0)))
+        cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    near = 0.5 * float(np.min(p[:, 2]))
+    eye = np.asarray(viewpoint, np.float64) * np.array([1.0, -1.0, -1.0])
+    # pixel u covers [u - 1/2, u + 1/2]; the optical y (down) is dofsplat's -y
+    return {"eye": eye, "target": eye + [0.0, 0.0, -1.0], "up": np.array([0.0, 1.0, 0.0]),
+            "frustum": np.array([near * (-0.5 - cx) / fx, near * (width - 0.5 - cx) / fx,
+                                 -near * (height - 0.5 - cy) / fy, near * (0.5 + cy) / fy,
+                                 near]),
+            "size": np.array([width, height], np.float64)}
+
+
+def _fit_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(slope, intercept) of y = slope x + intercept by least squares."""
+    if len(x) < 2 or np.ptp(x) == 0:
+        return 0.0, 0.0
+    slope, intercept = np.polyfit(x, y.astype(np.float64), 1)
+    return float(slope), float(intercept)
 
 
 def read_pcd_columns(path) -> tuple[PcdHeader, dict[str, np.ndarray]]:

@@ -88,6 +88,8 @@ def write_surfels(file: Path, surfels: Surfels) -> None:
             arrays[name] = value
     material = asdict(surfels.material)
     arrays["material"] = np.array([material[k] for k in sorted(material)], np.float64)
+    for name, value in (getattr(surfels, "capture", None) or {}).items():
+        arrays[f"capture.{name}"] = np.asarray(value)  # a depth camera's view (io.pcd)
     file.parent.mkdir(parents=True, exist_ok=True)
     tmp = file.with_name(f".{file.name}.{os.getpid()}.tmp")
     try:
@@ -104,9 +106,13 @@ def read_surfels(file: Path) -> Surfels | None:
         with np.load(file) as z:
             names = sorted(asdict(Material()))
             material = Material(**dict(zip(names, (float(v) for v in z["material"]))))
-            return Surfels(positions=z["positions"], normals=z["normals"], radius=z["radius"],
-                           colors=z["colors"], material=material,
-                           **{k: z[k] for k in OPTIONAL if k in z.files})
+            surfels = Surfels(positions=z["positions"], normals=z["normals"],
+                              radius=z["radius"], colors=z["colors"], material=material,
+                              **{k: z[k] for k in OPTIONAL if k in z.files})
+            capture = {k.split(".", 1)[1]: z[k] for k in z.files if k.startswith("capture.")}
+            if capture:
+                surfels.capture = capture
+            return surfels
     except Exception:  # noqa: BLE001 - a damaged or foreign file: prepare the model again
         return None
 
