@@ -112,7 +112,7 @@ def run_render(args) -> int:
         default_focus = _median_depth(surfels, camera)
     else:
         width, height = args.size or DEFAULT_SIZE["render"]
-        base = _framing_camera(args, lo, hi, width, height)
+        base = _framing_camera(args, lo, hi, width, height, getattr(surfels, "up_hint", None))
         camera = _camera(args, base)
         default_focus = math.dist(camera.eye, camera.target)
     return _render_and_write(args, outputs, surfels, camera, default_focus,
@@ -277,16 +277,17 @@ def _render_by_method(args, surfels, camera, lens, settings):
 # -- camera, lens, settings --------------------------------------------------------------
 
 
-def _framing_camera(args, lo, hi, width: int, height: int):
+def _framing_camera(args, lo, hi, width: int, height: int, up_hint=None):
     """``render``'s default camera: its bounding box in view, from the +z side of the model,
-    or, when --up is (nearly) the z axis, from the -y side (a z-up scan seen from the front)."""
+    or, when the up axis (--up, else the loader's hint: a z-up scan, ``prep.pointcloud.
+    ground_up``) is (nearly) the z axis, from the -y side (a z-up scan seen from the front)."""
     from .camera import Camera
 
     fov = args.fov or DEFAULT_FOV_DEG
     if args.frustum is not None:
         left, right, bottom, top, near = args.frustum
         fov = math.degrees(2.0 * math.atan((top - bottom) / (2.0 * near)))
-    up = tuple(args.up or (0.0, 1.0, 0.0))
+    up = tuple(args.up or up_hint or (0.0, 1.0, 0.0))
     direction = (0.0, 0.0, 1.0)
     if abs(up[2]) > 0.9 * math.hypot(*up):
         direction = (0.0, -1.0, 0.0)
@@ -787,7 +788,8 @@ def _add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="point the camera looks at, world units"
                           + ("" if is_demo else " (default: the model's centre)"))
     cam.add_argument("--up", nargs=3, type=_number, metavar=("X", "Y", "Z"),
-                     help="direction that appears upwards in the image (default: 0 1 0)")
+                     help="direction that appears upwards in the image (default: 0 1 0, or "
+                          "0 0 1 for a point cloud whose ground faces +z)")
     view = cam.add_mutually_exclusive_group()
     view.add_argument("--fov", metavar="DEG", type=_fov,
                       help="vertical field of view in degrees (default: "

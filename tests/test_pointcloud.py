@@ -354,3 +354,56 @@ def test_dragon_vertices_normals_agree_with_the_mesh():
     # dragon: 99.4 % with the defaults, 99.6 % with the old ones
     assert np.mean(dots > 0) > 0.9
     assert np.median(np.degrees(np.arccos(np.clip(np.abs(dots), 0, 1)))) < 10
+
+
+def scene_points(up_axis: int, n=40, seed=0):
+    """A scan of a ground (2 x 2, n x n points) with a box (0.5 high) standing on it, up
+    along axis ``up_axis`` (1: y, 2: z)."""
+    rng = np.random.default_rng(seed)
+    g = np.linspace(-1, 1, n)
+    a, b = (v.ravel() for v in np.meshgrid(g, g))
+    ground = np.stack([a, b, np.zeros_like(a)], axis=1)
+    ground = ground[(np.abs(a) > 0.3) | (np.abs(b) > 0.3)]
+    h = np.linspace(0, 0.5, 12)
+    s = np.linspace(-0.3, 0.3, 15)
+    ws, wh = (v.ravel() for v in np.meshgrid(s, h))
+    walls = [np.stack([np.full(ws.size, x), ws, wh], axis=1) for x in (-0.3, 0.3)]
+    walls += [w[:, [1, 0, 2]] for w in walls]
+    ta, tb = (v.ravel() for v in np.meshgrid(s, s))
+    top = np.stack([ta, tb, np.full(ta.size, 0.5)], axis=1)
+    pts = np.concatenate([ground, *walls, top]) + rng.normal(0, 1e-4, (1, 3))
+    if up_axis == 1:  # z-up -> y-up
+        pts = pts[:, [0, 2, 1]] * [1, 1, -1]
+    return pts
+
+
+@pytest.mark.parametrize("up_axis, expected", [(2, (0.0, 0.0, 1.0)), (1, None)])
+def test_a_z_up_scan_is_recognised_by_its_ground(up_axis, expected, tmp_path):
+    """Issue 18 item 3: a bare-point scan whose ground faces +z gets the hint z-up (the
+    default camera then sees it upright from -y, like the same points read from LAS); a
+    y-up one gets none (y-up is the default)."""
+    from plyfile import PlyData, PlyElement
+
+    from dofsplat.io import load
+    from dofsplat.prep.pointcloud import ground_up
+
+    pts = scene_points(up_axis)
+    s = points_to_surfels(pts, progress=False, normalise="none")
+    assert ground_up(s) == expected
+    v = np.zeros(len(pts), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    v["x"], v["y"], v["z"] = pts.T
+    path = tmp_path / "scan.ply"
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+    assert load(path).up_hint == expected
+    from dofsplat import cli
+
+    stats = tmp_path / "s.json"
+    assert cli.main(["render", str(path), "-o", str(tmp_path / "x.png"), "--size", "48x36",
+                     "--stats", str(stats), "-q"]) == 0
+    import json
+
+    cam = json.loads(stats.read_text())["camera"]
+    if expected is None:
+        assert cam["up"] == [0.0, 1.0, 0.0] and cam["eye"][2] > cam["target"][2]
+    else:
+        assert cam["up"] == [0.0, 0.0, 1.0] and cam["eye"][1] < cam["target"][1]

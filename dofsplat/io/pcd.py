@@ -78,7 +78,7 @@ def read_pcd(path, *, material: Material | None = None, k: int | None = None,
     per-surfel normalisation, "object", "render" or "none" (all three: points_to_surfels).
     DofsplatError for a damaged file or one without valid points."""
     from ..prep.normalise import check_method
-    from ..prep.pointcloud import points_to_surfels
+    from ..prep.pointcloud import ground_up, points_to_surfels
 
     check_method(normalise)
     path = Path(path)
@@ -91,6 +91,8 @@ def read_pcd(path, *, material: Material | None = None, k: int | None = None,
     surfels = surfels if material is None else replace(surfels, material=material)
     if camera is not None:
         surfels.capture = camera  # the CLI's default view: the sensor's
+    else:
+        surfels.up_hint = ground_up(surfels)  # a z-up scan is seen upright (prep.pointcloud)
     return surfels
 
 

@@ -503,7 +503,7 @@ def _read_ascii_body(data: bytes, header: PlyHeader, source: str) -> dict | None
 
 def _point_surfels(path: Path, columns: dict, k, smooth, material, normalise) -> Surfels:
     """Bare points (normals optional) to surfels through :mod:`dofsplat.prep.pointcloud`."""
-    from ..prep.pointcloud import points_to_surfels
+    from ..prep.pointcloud import ground_up, points_to_surfels
 
     _check_groups(path, columns, (COLOR, NORMAL))
     positions = _stack64(columns, ("x", "y", "z"))
@@ -517,7 +517,9 @@ def _point_surfels(path: Path, columns: dict, k, smooth, material, normalise) ->
                                 normalise=normalise, source=str(path))
     if opacity is not None and len(surfels) == len(opacity):
         surfels = replace(surfels, opacity=opacity)
-    return surfels if material is None else replace(surfels, material=material)
+    surfels = surfels if material is None else replace(surfels, material=material)
+    surfels.up_hint = ground_up(surfels)  # a z-up scan is seen upright (prep.pointcloud)
+    return surfels
 
 
 def finite_rows(positions, *others, source: str = "", what="points") -> np.ndarray:

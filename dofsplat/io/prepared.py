@@ -90,6 +90,8 @@ def write_surfels(file: Path, surfels: Surfels) -> None:
     arrays["material"] = np.array([material[k] for k in sorted(material)], np.float64)
     for name, value in (getattr(surfels, "capture", None) or {}).items():
         arrays[f"capture.{name}"] = np.asarray(value)  # a depth camera's view (io.pcd)
+    if getattr(surfels, "up_hint", None) is not None:
+        arrays["up_hint"] = np.asarray(surfels.up_hint, np.float64)
     file.parent.mkdir(parents=True, exist_ok=True)
     tmp = file.with_name(f".{file.name}.{os.getpid()}.tmp")
     try:
@@ -112,6 +114,8 @@ def read_surfels(file: Path) -> Surfels | None:
             capture = {k.split(".", 1)[1]: z[k] for k in z.files if k.startswith("capture.")}
             if capture:
                 surfels.capture = capture
+            if "up_hint" in z.files:
+                surfels.up_hint = tuple(float(v) for v in z["up_hint"])
             return surfels
     except Exception:  # noqa: BLE001 - a damaged or foreign file: prepare the model again
         return None
