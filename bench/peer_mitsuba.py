@@ -1,0 +1,158 @@
+"""A peer: how many samples, and how long, a path tracer needs for our frame's quality (issue 15).
+
+    pip install mitsuba          # not a dependency of dofsplat, and not run in CI
+    python bench/peer_mitsuba.py [--aperture 0.1] [--converged 4096]
+
+The scene is the paper's textured plane (``dofsplat.demo.plane_scene``: 4 x 4 units seen at
+a grazing angle, 512 x 512, focused mid-plane), made emissive so that neither renderer
+shades it (ours with ``shading="none"``; Mitsuba's ``area`` emitter with the texture our
+surfels carry, 512 x 512 texels read bilinearly, and a black BSDF): what remains is the
+depth of field itself. Mitsuba 3
+renders it through its ``thinlens`` sensor (the same eye, target, field of view, lens radius
+and focus distance) with the CPU variant ``llvm_ad_rgb`` at 1, 2, 4, ... samples per pixel.
+
+Both are measured against Mitsuba's converged image (``--converged`` samples per pixel):
+our default frame (LOD, the aperture's disc), and Mitsuba at each sample count. The script
+finds the first sample count whose PSNR reaches ours, and prints Mitsuba's time there over
+our frame's time (both medians of 3 runs after a warm-up that includes Mitsuba's JIT
+compilation). Our 200-sample reference against the same image says how far the two
+renderers' scenes agree (the surfels' reconstruction of the texture, the pixel filters).
+
+Mitsuba's LLVM variant loads the system's libLLVM. With Debian 12's default, libllvm15,
+Mitsuba 3.9.1 stops with "LLVM ERROR: Cannot select: fminimum"; Debian 12's libllvm19 works:
+
+    apt-get install libllvm19
+    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 python bench/peer_mitsuba.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import dofsplat as ds  # noqa: E402
+from dofsplat.demo import PLANE_SIZE, plane_scene, plane_texture  # noqa: E402
+from dofsplat.metrics import compare  # noqa: E402
+from dofsplat.reference import render_reference  # noqa: E402
+
+TEXELS = 512  # as textured_plane's grid
+FLIP = -1
+
+
+def ours(aperture: float, samples: int):
+    """(our frame (H, W, 4), our reference, our frame's median time in ms, camera, lens)."""
+    surfels, camera, lens = plane_scene(512, 512)
+    lens = dataclasses.replace(lens, aperture=aperture)
+    st = ds.RenderSettings(shading="none")
+    ds.render(surfels, camera, lens, st)
+    runs, image = [], None
+    for _ in range(3):
+        t = time.perf_counter()
+        image = ds.render(surfels, camera, lens, st).image
+        runs.append((time.perf_counter() - t) * 1000.0)
+    ref = render_reference(surfels, camera, lens, st, samples=samples,
+                           progress=sys.stderr.isatty()).image
+    return image, ref, statistics.median(runs), camera, lens
+
+
+def mitsuba_scene(camera, lens, spp: int):
+    import mitsuba as mi
+
+    # the texture our surfels carry (textured_plane: 512 x 512 samples of plane_texture,
+    # u along x, v along z), read bilinearly: the same scene. The rectangle's v runs along
+    # -z once turned, so the rows are reversed
+    g = (np.arange(TEXELS) + 0.5) / TEXELS
+    u, v = np.meshgrid(g, g)
+    texture = plane_texture(u.ravel(), v.ravel()).reshape(TEXELS, TEXELS, 3)[::FLIP]
+    # Mitsuba's rectangle spans [-1, 1]^2 in x-y facing +z; turned -90 degrees about x it
+    # lies in y = 0 facing +y (our plane), scaled to its side
+    plane = (mi.ScalarTransform4f.rotate([1, 0, 0], -90)
+             @ mi.ScalarTransform4f.scale([PLANE_SIZE / 2, PLANE_SIZE / 2, 1]))
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 1},  # the emitter seen through the lens
+        "sensor": {
+            "type": "thinlens", "fov": camera.fov_y, "fov_axis": "y",
+            "aperture_radius": lens.diameter / 2, "focus_distance": lens.focus_distance,
+            "to_world": mi.ScalarTransform4f.look_at(origin=list(camera.eye),
+                                                     target=list(camera.target),
+                                                     up=list(camera.up)),
+            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp},
+        },
+        "plane": {"type": "rectangle", "to_world": plane,
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.0}},
+                  "emitter": {"type": "area",
+                              "radiance": {"type": "bitmap", "raw": True,
+                                           "data": mi.TensorXf(texture.astype(np.float32))}}},
+    })
+
+
+def mitsuba_render(camera, lens, spp: int, repeat: int = 3):
+    """(image (H, W, 3) linear, median seconds) at spp samples per pixel."""
+    import mitsuba as mi
+
+    scene = mitsuba_scene(camera, lens, spp)
+    mi.render(scene, spp=spp)  # the JIT
+    runs, image = [], None
+    for seed in range(repeat):
+        t = time.perf_counter()
+        image = np.array(mi.render(scene, spp=spp, seed=seed + 1))
+        runs.append(time.perf_counter() - t)
+    return image, statistics.median(runs)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--aperture", type=float, default=0.1, help="lens diameter (default 0.1)")
+    ap.add_argument("--samples", type=int, default=200, help="our reference's lens samples")
+    ap.add_argument("--converged", type=int, default=4096,
+                    help="Mitsuba's samples per pixel for its converged image")
+    ap.add_argument("--max-spp", type=int, default=1024)
+    args = ap.parse_args(argv)
+    try:
+        import mitsuba as mi
+
+        mi.set_variant("llvm_ad_rgb")
+    except Exception as e:  # noqa: BLE001 - not installed, or no libLLVM
+        print(f"Mitsuba 3's llvm_ad_rgb variant is not available: {e}", file=sys.stderr)
+        return 1
+    frame, ref, ms_ours, camera, lens = ours(args.aperture, args.samples)
+    converged, secs = mitsuba_render(camera, lens, args.converged, repeat=1)
+    print(f"Mitsuba {mi.__version__} llvm_ad_rgb: converged image at {args.converged} spp "
+          f"in {secs:.1f} s")
+    rgba = np.concatenate([converged, np.ones(converged.shape[:2] + (1,))], axis=-1)
+    psnr_ours = compare(frame, rgba)["psnr"]
+    print(f"ours: {psnr_ours:.2f} dB against Mitsuba's converged image, {ms_ours:.0f} ms per "
+          f"frame (our {args.samples}-sample reference: {compare(ref, rgba)['psnr']:.2f} dB; "
+          f"our frame against it: {compare(frame, ref)['psnr']:.2f} dB)")
+    print("| spp | PSNR (dB) | time (ms) | Mitsuba time / ours |")
+    print("|---:|---:|---:|---:|")
+    spp = 1
+    while spp <= args.max_spp:
+        image, secs = mitsuba_render(camera, lens, spp)
+        img = np.concatenate([image, np.ones(image.shape[:2] + (1,))], axis=-1)
+        psnr = compare(img, rgba)["psnr"]
+        print(f"| {spp} | {psnr:.2f} | {secs * 1000:.0f} | {secs * 1000 / ms_ours:.1f} |",
+              flush=True)
+        if psnr >= psnr_ours:
+            print(f"Mitsuba reaches our {psnr_ours:.2f} dB at {spp} spp: "
+                  f"{secs * 1000 / ms_ours:.1f} x our frame's time")
+            return 0
+        spp *= 2
+    print(f"Mitsuba does not reach our {psnr_ours:.2f} dB by {args.max_spp} spp")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
