@@ -145,3 +145,25 @@ def test_general_circumellipse_contains_both_and_reduces_to_appendix():
     # B containing A returns B; A containing B returns A
     np.testing.assert_allclose(ewa.circumellipse_general(1.0, 0.2, 0.5, 4.0, 0.1, 3.0), (4.0, 0.1, 3.0), rtol=1e-12)
     np.testing.assert_allclose(ewa.circumellipse_general(4.0, 0.1, 3.0, 1.0, 0.2, 0.5), (4.0, 0.1, 3.0), rtol=1e-12)
+
+
+def test_kernel_pixel_sum_equals_a_direct_sum():
+    """The exact normalisation's pixel sum (forward differences along and, for narrow
+    kernels, down the rows) equals exp(-q) summed directly over the pixel centres inside
+    the cutoff, to 1e-12 (measured 7e-15), for random kernels narrow and wide."""
+    from dofsplat.splat.ewa import kernel_pixel_sum
+
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        a = rng.normal(size=(2, 2)) * rng.uniform(0.2, 4.0)
+        w = a @ a.T + np.eye(2)
+        c = np.linalg.inv(w)
+        mx, my = rng.uniform(10, 20, 2)
+        hx, hy = math.sqrt(5 * w[0, 0]), math.sqrt(5 * w[1, 1])
+        x0, x1 = math.floor(mx - hx - 0.5), math.ceil(mx + hx - 0.5)
+        y0, y1 = math.floor(my - hy - 0.5), math.ceil(my + hy - 0.5)
+        fast = kernel_pixel_sum(mx, my, c[0, 0], c[0, 1], c[1, 1], 2.5, x0, x1, y0, y1, 0.0)
+        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1] + 0.5
+        dx, dy = xs - mx, ys - my
+        q = 0.5 * (c[0, 0] * dx * dx + 2 * c[0, 1] * dx * dy + c[1, 1] * dy * dy)
+        assert fast == pytest.approx(np.exp(-q)[q < 2.5].sum(), rel=1e-12)
