@@ -69,8 +69,12 @@ def cached_files(kind: str | None = None) -> list[Path]:
     files = []
     for k in kinds:
         folder = cache_folder(k)
-        if folder.is_dir():
-            files += [p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")]
+        try:
+            if folder.is_dir():
+                files += [p for p in folder.iterdir()
+                          if p.is_file() and not p.name.startswith(".")]
+        except OSError as e:
+            raise DofsplatError(f"cannot read the cache folder {folder}: {e.strerror or e}") from None
     return sorted(files, key=_mtime)
 
 
@@ -93,6 +97,8 @@ def clear_cache(kind: str | None = None) -> tuple[int, int]:
             p.unlink()
         except FileNotFoundError:
             continue
+        except OSError as e:
+            raise DofsplatError(f"cannot remove {p}: {e.strerror or e}") from None
         n, b = n + 1, b + size
     return n, b
 
@@ -114,6 +120,8 @@ def enforce_cap(limit: int | None = None, keep: Path | None = None) -> list[Path
             p.unlink()
         except FileNotFoundError:
             pass
+        except OSError:
+            continue  # a file we may not remove (a shared cache): leave it, try the next
         total -= size
         gone.append(p)
     return gone

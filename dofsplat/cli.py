@@ -224,7 +224,9 @@ def _render_and_write(args, outputs, surfels, camera, default_focus: float,
     from .render import focus_distance_at
 
     settings = _settings(args)
-    if not args.quiet and settings.device != "cuda":
+    from .backends import resolve_device
+
+    if not args.quiet and resolve_device(settings.device, "--device") == "cpu":
         from .backends.cpu import COMPILE_SECONDS, kernels_compiled
 
         if not kernels_compiled():
@@ -295,7 +297,7 @@ def _framing_camera(args, lo, hi, width: int, height: int, up_hint=None):
 
 
 def _capture_camera(capture: dict, size):
-    """The sensor's camera of a depth capture (``io.pcd.capture_grid``), at the capture's
+    """The sensor's camera of a depth capture (``io.pcd.capture_camera``), at the capture's
     pixel size or ``size``, the frustum widened or narrowed about its centre to that aspect."""
     from .camera import Camera
 

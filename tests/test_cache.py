@@ -158,3 +158,35 @@ def test_the_first_run_says_that_it_compiles(tmp_path, monkeypatch, capsys):
     assert err[0].startswith("dofsplat: compiling the rendering kernels, once (about 30 s")
     assert cli.main(["demo", "--size", "48x36", "-o", "d.png", "-q"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_mesh_key_follows_the_files_it_names_only(tmp_path):
+    """A mesh's key covers its material library and the textures that names (a subfolder
+    too), not other files beside it: render's default MODEL.png output changes nothing."""
+    (tmp_path / "tex").mkdir()
+    (tmp_path / "m.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "m.mtl").write_text("newmtl a\nmap_Kd tex/wood.png\n")
+    (tmp_path / "tex" / "wood.png").write_bytes(b"wood")
+    (tmp_path / "other.png").write_bytes(b"other")
+    used = prepared.referenced_files(tmp_path / "m.obj")
+    assert [p.relative_to(tmp_path).as_posix() for p in used] == ["m.mtl", "tex/wood.png"]
+    loader = LOADERS[".obj"]
+    key = prepared.cache_key(tmp_path / "m.obj", loader, {})
+    (tmp_path / "m.png").write_bytes(b"a render of m.obj")
+    assert prepared.cache_key(tmp_path / "m.obj", loader, {}) == key
+    (tmp_path / "tex" / "wood.png").write_bytes(b"new wood!")
+    assert prepared.cache_key(tmp_path / "m.obj", loader, {}) != key
+
+
+def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir):
+    from dofsplat.lod.cache import cache_folder, cached_hierarchy
+    from dofsplat.lod.hierarchy import fingerprint
+
+    from conftest import grid_surfels
+
+    s = grid_surfels(8)
+    path = cache_folder() / f"{fingerprint(s)}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"not a tree")
+    tree = cached_hierarchy(s, "auto")  # no error: rebuilt, and kept again
+    assert len(tree) == 2 * len(s) - 1 and path.stat().st_size > 100

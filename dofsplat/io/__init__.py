@@ -51,7 +51,7 @@ __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
 def load(path, cache: str = "auto", **options) -> Surfels:
     """Load a surfel model, choosing the loader by the file's extension.
 
-    cache: "auto" keeps a model that took preparation (over ``prepared.MIN_SECONDS``: the
+    cache: "auto" keeps a model that took ``prepared.MIN_SECONDS`` or more to load (the
     normals, radii and normalisation of a point cloud, a mesh's sampling) in the user's
     cache folder and reads it from there next time, keyed by the file's content, the
     options and the preparation code (``dofsplat.cache``); "off" always prepares it.

@@ -127,9 +127,11 @@ def pcd_points(header: PcdHeader, columns: dict, source: str):
     camera = None
     if header.organised:
         # pixels without depth are NaN: expected, so dropped without a warning
-        keep = np.all(np.isfinite(positions), axis=1) & (positions[:, 2] > 0)
+        keep = np.all(np.isfinite(positions), axis=1)
+        keep[keep] = positions[keep, 2] > viewpoint[2]  # in front of the sensor
         if not keep.any():
-            raise DofsplatError(f"{source}: no valid points (all {len(keep):,} are NaN)")
+            raise DofsplatError(f"{source}: no valid points (all {len(keep):,} are NaN or "
+                                "behind the sensor)")
         camera = capture_camera(positions, keep, header.width, header.height, viewpoint)
         positions = positions[keep]
         colors = None if colors is None else colors[keep]
@@ -156,7 +158,7 @@ def capture_camera(positions: np.ndarray, valid: np.ndarray, width: int, height:
     are): eye, target, up, frustum (L, R, B, T, N) and size (W, H), for the CLI's default
     camera, which then sees the capture as the sensor did, pixel for pixel."""
     v_idx, u_idx = np.divmod(np.flatnonzero(valid), width)
-    p = positions[valid]
+    p = positions[valid] - np.asarray(viewpoint, np.float64)  # seen from the sensor
     fx, cx = _fit_line(p[:, 0] / p[:, 2], u_idx)
     fy, cy = _fit_line(p[:, 1] / p[:, 2], v_idx)
     if not (fx > 0 and fy > 0):  # a degenerate grid (one column, a flipped image)

@@ -6,12 +6,15 @@ per-surfel normalisation; a mesh's sampling). ``load_prepared`` keeps the result
 reads it back (milliseconds) when the same file is loaded with the same options by the same
 preparation code. The key is a hash of:
 
-* the file's bytes (and, for a mesh, the names, sizes and times of the files beside it:
-  its material library and textures), and a ``texture`` option's file;
+* the file's bytes, the names, sizes and times of the files it names beside it (a mesh's
+  material library and textures: ``referenced_files``), and a ``texture`` option's file;
 * the loader and its options;
 * the source of the preparation code (``dofsplat/prep``, ``dofsplat/io``,
-  ``dofsplat/surfels.py``): a change to how surfels are made makes old entries unused (the
-  size cap then evicts them).
+  ``dofsplat/surfels.py``, and the renderer's for ``normalise="render"``, which renders):
+  a change to how surfels are made makes old entries unused (the size cap evicts them).
+
+Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model read back from the
+cache does not repeat the warnings its first load gave (dropped NaN points, for instance).
 
 Files are written atomically; a cache that cannot be written costs a preparation next time,
 no more.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -28,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import cache
+from ..errors import DofsplatError
 from ..surfels import Material, Surfels
 
 MIN_SECONDS = 0.5  # a model that loads faster is not worth a copy on disk
@@ -40,7 +45,7 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> 
     key = cache_key(path, loader, options) if use_cache and cache.enabled() else None
     file = cache.cache_folder("surfels") / f"{key}.npz" if key else None
     t0 = time.perf_counter()
-    if file is not None and file.exists():
+    if file is not None and _exists(file):
         surfels = read_surfels(file)
         if surfels is not None:
             cache.touch(file)
@@ -53,9 +58,10 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> 
     if file is not None and seconds >= MIN_SECONDS:
         try:
             write_surfels(file, surfels)
-            cache.enforce_cap(keep=file)
-            surfels.load_info["cache_file"] = str(file)
-        except OSError:
+            cache.enforce_cap(keep=file)  # (a model larger than the cap goes at once)
+            if file.exists():
+                surfels.load_info["cache_file"] = str(file)
+        except (OSError, DofsplatError):
             pass  # an unwritable cache costs the preparation next time, no more
     return surfels
 
@@ -63,14 +69,13 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> 
 def cache_key(path: Path, loader, options: dict) -> str:
     """The hash that names a prepared model (module notes)."""
     h = hashlib.blake2b(digest_size=16)
-    h.update(_code_hash().encode())
+    h.update(_code_hash(render=options.get("normalise") == "render").encode())
     h.update(f"{loader.__module__}.{loader.__qualname__}".encode())
     h.update(repr(sorted((k, str(v)) for k, v in options.items())).encode())
     _hash_file(h, path)
-    for sibling in sorted(path.parent.iterdir()) if _is_mesh(path) else ():
-        if sibling != path and sibling.is_file():
-            st = sibling.stat()
-            h.update(f"{sibling.name}\0{st.st_size}\0{st.st_mtime_ns}".encode())
+    for used in referenced_files(path):
+        st = used.stat()
+        h.update(f"{used.name}\0{st.st_size}\0{st.st_mtime_ns}".encode())
     if options.get("texture"):
         texture = Path(options["texture"])
         if texture.is_file():
@@ -93,9 +98,10 @@ def write_surfels(file: Path, surfels: Surfels) -> None:
     if getattr(surfels, "up_hint", None) is not None:
         arrays["up_hint"] = np.asarray(surfels.up_hint, np.float64)
     file.parent.mkdir(parents=True, exist_ok=True)
-    tmp = file.with_name(f".{file.name}.{os.getpid()}.tmp")
+    fd, name = tempfile.mkstemp(prefix=f".{file.name}.", suffix=".tmp", dir=file.parent)
+    tmp = Path(name)
     try:
-        with open(tmp, "wb") as f:
+        with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, file)
     finally:
@@ -121,27 +127,59 @@ def read_surfels(file: Path) -> Surfels | None:
         return None
 
 
+def _exists(file: Path) -> bool:
+    try:
+        return file.exists()
+    except OSError:  # an unreadable cache folder: prepare the model
+        return False
+
+
 def _hash_file(h, path: Path) -> None:
     with open(path, "rb") as f:
         while chunk := f.read(1 << 20):
             h.update(chunk)
 
 
-def _is_mesh(path: Path) -> bool:
-    from .mesh import MESH_EXTENSIONS
+# what a model file may name beside it: material libraries, textures, glTF buffers
+REFERENCED = (".mtl", ".bin", ".png", ".jpg", ".jpeg", ".tga", ".bmp", ".tif", ".tiff",
+              ".webp", ".ktx", ".ktx2", ".dds", ".exr", ".hdr")
 
-    return path.name.lower().endswith(tuple(MESH_EXTENSIONS))
+
+def referenced_files(path: Path) -> list[Path]:
+    """The files in the model's folder (two levels deep) that its text names: an OBJ's
+    material library and the textures that library names, a glTF's buffers and images, a
+    PLY's ``comment TextureFile``. Found by name in the model's first MB and in the named
+    material libraries, so that an output written beside the model (``render``'s default
+    MODEL.png is not named by the model) changes no key."""
+    folder = path.parent
+    candidates = [p for pattern in ("*", "*/*") for p in folder.glob(pattern)
+                  if p.is_file() and p != path and p.suffix.lower() in REFERENCED]
+    if not candidates:
+        return []
+    with open(path, "rb") as f:
+        texts = [f.read(1 << 20).decode("latin-1")]
+    used: list[Path] = []
+    for _ in range(2):  # the model names its .mtl; the .mtl names the textures
+        for p in candidates:
+            rel = p.relative_to(folder).as_posix()
+            if p not in used and any(rel in t or p.name in t for t in texts):
+                used.append(p)
+                if p.suffix.lower() == ".mtl":
+                    texts.append(p.read_text(encoding="latin-1", errors="replace")[:1 << 20])
+    return sorted(used)
 
 
-def _code_hash() -> str:
-    """A hash of the preparation code's source (computed once per process)."""
+def _code_hash(render: bool = False) -> str:
+    """A hash of the preparation code's source, with the renderer's when the preparation
+    renders (computed once per process)."""
     if not _CODE_HASH:
         root = Path(__file__).resolve().parents[1]
-        h = hashlib.blake2b(digest_size=16)
-        files = sorted([*(root / "prep").glob("*.py"), *(root / "io").glob("*.py"),
-                        root / "surfels.py"])
-        for f in files:
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-        _CODE_HASH.append(h.hexdigest())
-    return _CODE_HASH[0]
+        for extra in ((), ("splat/*.py", "raster/*.py", "backends/*.py", "*.py")):
+            h = hashlib.blake2b(digest_size=16)
+            files = sorted({*(root / "prep").glob("*.py"), *(root / "io").glob("*.py"),
+                            root / "surfels.py", *(p for g in extra for p in root.glob(g))})
+            for f in files:
+                h.update(f.relative_to(root).as_posix().encode())
+                h.update(f.read_bytes())
+            _CODE_HASH.append(h.hexdigest())
+    return _CODE_HASH[1 if render else 0]

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from .. import cache
+from ..errors import DofsplatError
 from .hierarchy import Hierarchy, build_hierarchy, fingerprint
 
 
@@ -39,7 +40,14 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
         path = cache_folder() / f"{fingerprint(surfels)}.npz" if cache.enabled() else None
     else:
         path = Path(cache_arg)
-    tree = Hierarchy.load(path, surfels) if path is not None else None
+    tree = None
+    if path is not None:
+        try:
+            tree = Hierarchy.load(path, surfels)
+        except DofsplatError:
+            if str(cache_arg) != "auto":
+                raise  # the user's own file: say what is wrong with it
+            path.unlink(missing_ok=True)  # a damaged cache entry: rebuilt below
     if tree is not None and str(cache_arg) == "auto":
         cache.touch(path)  # just used: evicted last
     if tree is None:
@@ -50,11 +58,12 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 tree.save(path)
-                message += f", kept in {path}"
                 if str(cache_arg) == "auto":
-                    cache.enforce_cap(keep=path)
-            except OSError as exc:  # an unwritable cache costs a rebuild next time, no more
-                message += f"; could not keep it in {path} ({exc.strerror or exc})"
+                    cache.enforce_cap(keep=path)  # (a tree larger than the cap goes at once)
+                message += f", kept in {path}" if path.exists() else ", larger than the cache"
+            except (OSError, DofsplatError) as exc:  # an unwritable cache costs a rebuild
+                why = getattr(exc, "strerror", None) or exc
+                message += f"; could not keep it in {path} ({why})"
         if log is not None and (path is not None or tree.build_seconds >= 1.0):
             log(message)  # (a quick build that is kept nowhere is not worth a line)
     surfels._lod_hierarchy = tree

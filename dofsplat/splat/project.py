@@ -106,7 +106,8 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     mix = edge_mix(radius, w11, w22)
     if radius != 0.0:
         # an aperture kernel's mass by quadrature over the direction (bokeh.aperture_mass):
-        # at least a pixel wide, its sum over pixel centres is the integral to ~3e-3
+        # at least a pixel wide, its sum over pixel centres is the integral to ~5e-3 (1 % for
+        # polygons)
         norm = aperture_mass(radius, w11, w12, w22, mix, blades, moments)
         floor_k = 0.0  # the table is tapered already
     elif exact_norm and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
