@@ -126,7 +126,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     ax, bx, ay, by = camera.screen_coefficients()
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
-    splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float64)
+    splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
     visible = _buffer(workspace, "visible", (n,), np.bool_)
     disc, blades, _, moments = aperture_shape(lens, settings)
