@@ -155,8 +155,11 @@ def test_lod_cut_and_projection_match_cpu(scene):
     g_visible = g_visible.copy_to_host()
     np.testing.assert_array_equal(g_visible, visible)
     np.testing.assert_array_equal(g_bbox.copy_to_host()[visible], bbox[visible])
-    np.testing.assert_allclose(g_splats.copy_to_host()[visible], splats[visible], rtol=1e-12,
-                               atol=1e-12)
+    # the CPU keeps its rows in float32 (backends.cpu.project), the GPU in float64: the
+    # same maths, compared at float32's precision (a rounding step, 6e-8 relative)
+    g = g_splats.copy_to_host()[visible]
+    assert splats.dtype == np.float32
+    np.testing.assert_allclose(g.astype(np.float32), splats[visible], rtol=2e-7, atol=1e-30)
 
 
 @needs_cuda
