@@ -3,6 +3,7 @@
     python bench/profile.py                      # plane, lion 1280x720, demo: a markdown table
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
     python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
+    python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --json out.json      # the figures as JSON too
 
 Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
@@ -62,11 +63,11 @@ def scene(name: str):
     return textured_plane(BIG_SIDE, PLANE_SIZE), camera, lens
 
 
-def frames(name: str, aperture: float, repeat: int) -> dict:
+def frames(name: str, aperture: float, repeat: int, settings=None) -> dict:
     surfels, camera, lens = scene(name)
     lens = dataclasses.replace(lens, aperture=aperture) if aperture > 0 else None
-    ds.render(surfels, camera, lens)  # the JIT, the hierarchy
-    runs = [ds.render(surfels, camera, lens).stats for _ in range(repeat)]
+    ds.render(surfels, camera, lens, settings)  # the JIT, the hierarchy
+    runs = [ds.render(surfels, camera, lens, settings).stats for _ in range(repeat)]
     out = {k: statistics.median(r[k] for r in runs) for k in STAGES}
     out["fragments"] = runs[0]["fragments"]
     out["splats"] = runs[0]["splats_rendered"]
@@ -109,6 +110,8 @@ def main(argv=None) -> int:
                     choices=list(APERTURES))
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--json", help="write the figures here too")
+    ap.add_argument("--no-exact", action="store_true",
+                    help="RenderSettings(exact_normalization=False): what the pixel sum costs")
     ap.add_argument("--big-frame", type=float, help=argparse.SUPPRESS)  # the subprocess
     args = ap.parse_args(argv)
     if args.big_frame is not None:
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
                 r["ns_per_fragment_thread"] = (r["raster_ms"] * 1e6 * numba.get_num_threads()
                                                / max(r["fragments"], 1))
             else:
-                r = frames(name, a, args.repeat)
+                r = frames(name, a, args.repeat,
+                           ds.RenderSettings(exact_normalization=not args.no_exact))
             r.update(scene=name, aperture=a)
             records.append(r)
             print(f"| {name} | {a:g} | {r['splats']:,} | {r['fragments']:,} | "

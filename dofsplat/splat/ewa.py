@@ -397,14 +397,7 @@ def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
         step_g = math.exp(-c22)
         step_f = math.exp(-c12)  # the row step grows by c12 per row
         for _ in range(y0, y1 + 1):
-            qq, ddq, ee, ff = q, dq, e, f
-            for _ in range(x0, x1 + 1):
-                if qq < cutoff:
-                    total += ee - floor
-                qq += ddq
-                ddq += c11
-                ee *= ff
-                ff *= step2
+            total += row_sum(q, dq, e, f, x1 - x0 + 1, c11, step2, cutoff, floor)
             q += dqc
             dqc += c22
             dq += c12
@@ -417,11 +410,21 @@ def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
         if j0 > j1:
             continue
         q, dq, e, f = row_start(j0, i, mx, my, c11, c12, c22)
-        for _ in range(j0, j1 + 1):
-            if q < cutoff:
-                total += e - floor
-            q += dq
-            dq += c11
-            e *= f
-            f *= step2
+        total += row_sum(q, dq, e, f, j1 - j0 + 1, c11, step2, cutoff, floor)
+    return total
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def row_sum(q, dq, e, f, n, c11, step2, cutoff, floor):
+    """Sum of exp(-q) - floor over n pixels of a row where q < cutoff, from the first
+    pixel's q, its step dq, e = exp(-q) and f = exp(-dq) (``row_start``): forward differences,
+    q and dq growing by dq and c11, e and f by the factors f and step2 = exp(-c11)."""
+    total = 0.0
+    for _ in range(n):
+        if q < cutoff:
+            total += e - floor
+        q += dq
+        dq += c11
+        e *= f
+        f *= step2
     return total
