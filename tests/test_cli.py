@@ -424,7 +424,7 @@ def test_z_up_framing_looks_from_the_front(plane_ply, workdir, capsys):
 
 def test_summary_counts_say_what_they_mean():
     """Issue 18: 466,314 fragments once printed as "46.6k" (divided by 1e4, called k)."""
-    from dofsplat.cli import _count
+    from dofsplat.cli import format_count as _count
 
     assert _count(9_999) == "9,999"
     assert _count(10_000) == "10.0k"

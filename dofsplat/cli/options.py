@@ -1,0 +1,383 @@
+"""What the commands share before any work: argument types, option groups, help layout.
+
+Every argument type raises ``argparse.ArgumentTypeError``, which argparse reports on one line;
+:class:`Parser` turns every usage mistake into a :class:`~dofsplat.errors.DofsplatError`, which
+:func:`dofsplat.cli.main` prints as one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+from pathlib import Path
+
+from ..errors import DofsplatError
+
+EXIT_OK = 0
+EXIT_USAGE = 2  # argparse's status for a usage error; every user mistake gets it
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+
+DEFAULT_SIZE = {"render": (512, 512), "demo": (800, 600)}  # pixels
+DEFAULT_FOV_DEG = 40.0  # vertical field of view for ``render``
+DEFAULT_CUTOFF = 2.5  # the paper's c
+APERTURE_PER_HALF_DIAGONAL = 0.1  # ``render``'s default lens diameter, x bbox half diagonal
+
+EPILOG = """\
+units:
+  Lengths (--eye, --target, --focus, --aperture, --focal-length, --frustum) are in world
+  units, the units of the model's coordinates. Image sizes and positions (--size,
+  --focus-at) are in pixels, (0, 0) being the top-left corner of the image. Angles are in
+  degrees. Colours are display (sRGB) values in 0..1.
+
+examples:
+  dofsplat demo
+  dofsplat demo --size 1280x720 --aperture 0.3 -o wide.png
+  dofsplat render scan.ply -o scan.png --focus-at 256 300
+  dofsplat render scan.ply -o scan.exr --focal-length 0.05 --f-number 1.4 --focus 2.5
+  dofsplat render scan.ply -o scan.png --depth scan-depth.npy --stats scan.json
+  dofsplat demo --method postfilter -o postfilter.png
+  dofsplat reference --demo -o reference.png --samples 200
+  dofsplat compare demo.png reference.png --diff diff.png
+  dofsplat convert scan.laz -o scan-surfels.ply
+"""
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps prose paragraphs; keeps indented blocks (the examples) as written."""
+
+    def _fill_text(self, text, width, indent):
+        paragraphs = []
+        for block in text.strip("\n").split("\n\n"):
+            lines = block.splitlines()
+            if any(line.startswith(" ") for line in lines[1:]):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(super()._fill_text(block, width, indent))
+        return "\n\n".join(paragraphs)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but a usage mistake is one line on stderr (raised, printed by main)."""
+
+    def error(self, message):
+        raise DofsplatError(message)
+
+
+# what ``render`` reads, for the help texts (dofsplat.io.LOADERS holds the loaders)
+MODEL_EXTENSIONS = (".ply", ".ply.gz", ".obj", ".gltf", ".glb", ".stl", ".off", ".las", ".laz",
+                     ".e57", ".pcd")
+
+
+def add_input_options(p: argparse.ArgumentParser) -> None:
+    """How a model file becomes surfels: the loader options (dofsplat.io.load's keywords)."""
+    group = p.add_argument_group(
+        "input", "How a file that is not a surfel file becomes surfels (docs/formats.md).")
+    group.add_argument("--points", metavar="N", type=sample_count,
+                       help="meshes: the number of surfels sampled over the surface "
+                            "(default: the vertex count, at least 200000), or 'vertices' "
+                            "for one surfel per vertex")
+    group.add_argument("--texture", metavar="FILE",
+                       help="meshes: an image applied through the texture coordinates "
+                            "(for an OBJ that names no material file)")
+    group.add_argument("--k", metavar="K", type=positive_int,
+                       help="point clouds (PLY without faces, LAS/LAZ, E57, PCD): neighbours for "
+                            "the normals, smoothing and radii (default: 24)")
+    group.add_argument("--no-smooth", dest="smooth", action="store_false", default=None,
+                       help="point clouds: keep the positions as measured (default: each "
+                            "point is moved along its normal onto the plane of its K "
+                            "neighbours, which removes scanner noise and quantisation); "
+                            "meshes: samples on the flat triangles (default: on the Phong "
+                            "tessellation that the vertex normals describe)")
+    group.add_argument("--normalise", choices=("object", "render", "none"),
+                       help="per-surfel normalisation, so that splats sum to 1 over the "
+                            "surface (paper Section 6.3): object (neighbours' basis functions "
+                            "summed in each surfel's tangent plane, seconds), render (the "
+                            "paper's: weights read back from renders, slower) or none. "
+                            "Default: object for points and meshes; a surfel or 3DGS file is "
+                            "taken as it is")
+    group.add_argument("--no-cache", action="store_true",
+                       help="prepare the model again: neither read nor keep it in the cache "
+                            "of prepared models (a point cloud or mesh that took over "
+                            "0.5 s to prepare is kept there, keyed by the file's content and "
+                            "these options; 'dofsplat cache' shows and clears it)")
+
+
+def prep_cache(args) -> str:
+    """load()'s cache: "off" with --no-cache."""
+    return "off" if getattr(args, "no_cache", False) else "auto"
+
+
+def default_output(model: str) -> str:
+    """``render``'s output without -o: the model's name with .png, in the current folder
+    (``scans/lion.laz`` -> ``lion.png``, ``dragon.ply.gz`` -> ``dragon.png``)."""
+    name = Path(model).name
+    for ext in sorted(MODEL_EXTENSIONS, key=len, reverse=True):
+        if name.lower().endswith(ext):
+            name = name[:-len(ext)]
+            break
+    return (name or "render") + ".png"
+
+
+def loader_options(args) -> dict:
+    """The input options the user gave, as keywords for dofsplat.io.load."""
+    names = ("points", "texture", "k", "smooth", "normalise")
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+
+
+def default_normalisation(path: Path) -> str:
+    """What the loaders do without --normalise: "object" for points and meshes, "none" for
+    a surfel or 3DGS PLY (taken as it is)."""
+    from ..io.ply import ply_kind, read_ply_header
+
+    ply = path.name.lower().endswith((".ply", ".ply.gz"))
+    if ply and ply_kind(read_ply_header(path)) in ("surfels", "gaussians"):
+        return "none (as stored)"
+    return "object"
+
+
+def sample_count(text: str):
+    if text.strip().lower() == "vertices":
+        return "vertices"
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or 'vertices', got "
+                                         f"{text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
+    """The options that ``render``, ``demo`` and ``reference`` share; help texts name each
+    one's defaults (``reference`` has ``render``'s, or the demo scene's with --demo)."""
+    from ..demo import DEMO_APERTURE, DEMO_FOV_DEG
+
+    is_demo = command == "demo"
+    w, h = DEFAULT_SIZE.get(command, DEFAULT_SIZE["render"])
+    demo_size = "; with --demo: {}x{}".format(*DEFAULT_SIZE["demo"]) if command == "reference" else ""
+
+    out = p.add_argument_group("more outputs")
+    out.add_argument("--depth", metavar="FILE",
+                     help="also write the depth map: camera depth in world units, inf where "
+                          "empty (.npy or .exr); .png gives a 16-bit picture of it, near is "
+                          "dark, empty is black")
+    out.add_argument("--stats", metavar="FILE.json",
+                     help="also write statistics as JSON: points in, splats rendered, "
+                          "fragments, milliseconds per stage and in total, and the camera, "
+                          "lens and settings used")
+    out.add_argument("-q", "--quiet", action="store_true",
+                     help="do not print the summary line")
+
+    cam = p.add_argument_group(
+        "camera", "Where the camera is and what it sees. "
+        + ("Default: the scene's camera." if is_demo else
+           "Default: looking at the centre of the model's bounding box along -z, from far "
+           "enough away that the whole box is in view."))
+    cam.add_argument("--size", metavar="WxH", type=image_size,
+                     help=f"image size in pixels (default: {w}x{h}{demo_size})")
+    cam.add_argument("--eye", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
+                     help="camera position, world units")
+    cam.add_argument("--target", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
+                     help="point the camera looks at, world units"
+                          + ("" if is_demo else " (default: the model's centre)"))
+    cam.add_argument("--up", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
+                     help="direction that appears upwards in the image (default: 0 1 0, or "
+                          "0 0 1 for a point cloud whose ground faces +z)")
+    view = cam.add_mutually_exclusive_group()
+    view.add_argument("--fov", metavar="DEG", type=fov_degrees,
+                      help="vertical field of view in degrees (default: "
+                           + (f"{DEMO_FOV_DEG:g})" if is_demo else f"{DEFAULT_FOV_DEG:g})"))
+    view.add_argument("--frustum", nargs=5, type=finite_number, metavar=("L", "R", "B", "T", "N"),
+                      help="the projection as glFrustum: the window [L, R] x [B, T] on the "
+                           "near plane at distance N in front of the eye, world units; "
+                           "(R-L)/(T-B) must equal W/H")
+
+    lens = p.add_argument_group(
+        "lens (depth of field)",
+        "A thin lens: surfaces at the focus distance are sharp, nearer and farther ones blur "
+        "the more, the wider the lens. Default: "
+        + (f"the scene's lens, diameter {DEMO_APERTURE:g} world units, focused on the "
+           "middle sphere."
+           if is_demo else
+           f"diameter {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of the model's "
+           "bounding box, focused on the target."))
+    diameter = lens.add_mutually_exclusive_group()
+    diameter.add_argument("--aperture", metavar="A", type=non_negative,
+                          help="lens diameter, world units; 0 is a pinhole (all sharp)")
+    diameter.add_argument("--f-number", metavar="N", type=positive_number,
+                          help="f-number (f-stop) n, with --focal-length: the lens diameter "
+                               "is F / n, so a smaller n blurs more")
+    diameter.add_argument("--no-dof", action="store_true",
+                          help="no depth of field: a pinhole camera, everything sharp")
+    lens.add_argument("--focal-length", metavar="F", type=positive_number,
+                      help="focal length F, world units (e.g. 0.05 for a 50 mm lens in a "
+                           "model measured in metres); with --f-number it sets the lens "
+                           "diameter, and the focus distance must exceed it. The field of "
+                           "view is set by --fov or --frustum, not by F")
+    lens.add_argument("--bokeh", choices=("disc", "gaussian"), default="disc",
+                      help="the blur's shape: disc (default), the aperture's own image, flat "
+                           "with a crisp edge as in a photograph; gaussian, the paper's soft "
+                           "blob of the same size (docs/maths.md)")
+    lens.add_argument("--blades", metavar="N", type=blade_count, default=0,
+                      help="straight aperture blades, 5 to 16: defocused highlights become "
+                           "N-gons (default 0: round)")
+    lens.add_argument("--blade-rotation", metavar="DEG", type=finite_number, default=0.0,
+                      help="turn the polygon of --blades by DEG degrees, counterclockwise")
+    focus = lens.add_mutually_exclusive_group()
+    focus.add_argument("--focus", metavar="P", type=positive_number,
+                       help="focus distance, world units, measured along the view axis "
+                            "(default: "
+                            + ("the middle sphere; with --eye or --target, the distance "
+                               "from eye to target)" if is_demo else
+                               "the distance from eye to target)"))
+    focus.add_argument("--focus-at", nargs=2, type=finite_number, metavar=("X", "Y"),
+                       help="focus on the surface seen at pixel (X, Y), counted from the "
+                            "top-left corner of the image (costs one extra, sharp render)")
+
+    ren = p.add_argument_group("rendering")
+    ren.add_argument("--cutoff", metavar="C", type=positive_number, default=DEFAULT_CUTOFF,
+                     help="splat cutoff c: each Gaussian kernel is cut where its exponent "
+                          f"reaches c; larger is smoother and slower (default: "
+                          f"{DEFAULT_CUTOFF:g}, as in the paper)")
+    ren.add_argument("--shading", choices=("phong", "none"), default="phong",
+                     help="phong: lit by a light at the camera (default); none: the surfel "
+                          "colours as they are")
+    ren.add_argument("--background", nargs=3, type=unit_interval, metavar=("R", "G", "B"),
+                     help="background colour, display (sRGB) values in 0..1 "
+                          "(default: 0 0 0, black)")
+    ren.add_argument("--no-cull", action="store_true",
+                     help="keep surfels that face away from the camera and light both "
+                          "sides (for models with inconsistent normals)")
+    if command != "reference":
+        ren.add_argument("--method", choices=("ours", "postfilter"), default="ours",
+                         help="ours: each splat blurred by its circle of confusion before "
+                              "visibility (default); postfilter: the common post-process "
+                              "baseline, a pinhole image blurred by the CoC of its depth "
+                              "buffer (for comparison: it leaks intensity and misses partial "
+                              "occlusion)")
+        ren.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
+                         help="where to render: cpu (default); cuda, an NVIDIA GPU (pip install "
+                              "'dofsplat[cuda]'; an error if none works); auto, the GPU if one "
+                              "works, else the CPU")
+
+    if command == "reference":
+        return  # its lens samples are full-resolution pinhole renders: no LOD options
+    p.add_argument("--reconstruction", choices=("soft", "paper"), default="soft",
+                   help="how blurred surfaces meet: soft (default) merges surfaces whose "
+                        "parallax is small against their blur and removes what such a "
+                        "surface hides, so a blurred object touching another shows no seam; "
+                        "paper is Section 6.4's z-range decision alone (docs/maths.md)")
+    lod = p.add_argument_group(
+        "level of detail",
+        "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
+        "so the time per frame hardly depends on the aperture (the paper's Section 6.2). "
+        "The picture stays the same (PSNR against --no-lod: 54-65 dB on the plane of the "
+        "paper's Table 1, 46-55 dB on a scanned statue).")
+    lod.add_argument("--lod", action=argparse.BooleanOptionalAction, default=True,
+                     help="select splats from the hierarchy (default: on); --no-lod splats "
+                          "every surfel")
+    lod.add_argument("--lod-threshold", metavar="PX", type=non_negative, default=1.0,
+                     help="also draw a node whole when its disk projects to at most PX "
+                          "pixels in radius, as QSplat does (default: 1; 0 keeps every "
+                          "surfel that the blur does not merge)")
+    lod.add_argument("--lod-blur-fraction", metavar="K", type=fraction, default=1.0,
+                     help="draw a node when its own blur is at most K times the depth-of-"
+                          "field blur (variance): 1 (default) is the paper's rule; 0.5 goes "
+                          "one level finer, closer to the exact picture, for ~1.5x the "
+                          "fragments")
+    lod.add_argument("--show-lod", action="store_true",
+                     help="colour each splat by its level (grey: single surfels, then "
+                          "blue, cyan, green, ... as nodes get coarser) and draw it without "
+                          "the blur, to see which levels the depth of field selects")
+    lod.add_argument("--taper", action="store_true",
+                     help="with --bokeh gaussian: taper LOD nodes' Gaussians to 0 at the "
+                          "cutoff, so that very large blurs show no hard-edged discs; it "
+                          "also narrows them, so it is off by default (docs/maths.md). The "
+                          "aperture's kernels (the default) are always tapered")
+    if not is_demo:
+        lod.add_argument("--lod-cache", metavar="FILE|auto|off", default="auto",
+                         help="where the hierarchy is kept between runs: auto (default) "
+                              "in ~/.cache/dofsplat/lod; a FILE.npz, e.g. next to the "
+                              "model; off builds it each time. A changed model is detected "
+                              "and its hierarchy rebuilt")
+
+
+# -- argument types --------------------------------------------------------------------
+
+
+def blade_count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of blades, got {text!r}") from None
+    if n != 0 and not 5 <= n <= 16:
+        raise argparse.ArgumentTypeError(f"blades must be 0 (round) or 5 to 16, got {n}")
+    return n
+
+
+def image_size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 640x480, "
+                                         f"got {text!r}")
+    width, height = int(m[1]), int(m[2])
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"the image needs at least 1x1 pixels, got {text!r}")
+    return width, height
+
+
+def finite_number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    value = finite_number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    value = finite_number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def fraction(text: str) -> float:
+    value = finite_number(text)
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+    return value
+
+
+def unit_interval(text: str) -> float:
+    value = finite_number(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in 0..1, got {text!r}")
+    return value
+
+
+def fov_degrees(text: str) -> float:
+    value = finite_number(text)
+    if not 0.0 < value < 180.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 180 degrees, got {text!r}")
+    return value
