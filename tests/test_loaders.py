@@ -1108,3 +1108,45 @@ def test_cli_renders_a_mesh_with_input_options(tmp_path, capsys):
     image = np.asarray(Image.open(out).convert("RGB"), np.float64)
     assert image[12, 24, 1] > 200 and image[12, 24, 0] < 30  # top half green
     assert image[34, 24].max() < 30  # bottom half black
+
+
+def test_pcd_capture_has_no_holes_from_its_sensor(tmp_path):
+    """A depth capture of a tilted textured wall (60 degrees from facing the sensor), its
+    depth quantised in 1.5 % steps as a structured-light sensor's is: seen from the sensor,
+    every pixel away from the image border is covered (alpha >= 0.99). Surfels sized by 3-D
+    neighbours left 62 % of them below that (tilted surfaces are under-covered and depth
+    steps split the surface into layers); sized by the sensor's pixels
+    (``capture_footprints``) none is. The colours are rendered unshaded by default, so a
+    grey wall is its own grey wherever its normals point."""
+    from dofsplat import cli
+
+    w, h, f = 64, 48, 60.0
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rx, ry = (u - (w - 1) / 2) / f, (v - (h - 1) / 2) / f
+    # the plane z = 2 + tan(60 deg) x, seen along the rays (x, y, z) = z (rx, ry, 1)
+    z = 2.0 / (1.0 - np.tan(np.radians(60.0)) * rx)
+    z = np.where((z > 0) & (z < 8), z, np.nan)
+    z = np.round(z / (0.015 * z)) * (0.015 * z)  # depth steps of 1.5 %
+    x, y = rx * z, ry * z
+    grey = np.full(w * h, 150)
+    rgb = packed_rgb(grey, grey, grey)
+    path = tmp_path / "wall.pcd"
+    path.write_bytes(pcd_bytes(["x", "y", "z", "rgb"], ["F", "F", "F", "U"], [4] * 4,
+                               [x.ravel(), y.ravel(), z.ravel(), rgb], width=w, height=h))
+    s = load(path)
+    assert s.tangent is not None and s.shading_hint == "none"
+    assert cli.main(["render", str(path), "-o", str(tmp_path / "c.npy"), "--no-dof",
+                     "--no-lod", "-q"]) == 0
+    image = np.load(tmp_path / "c.npy")
+    # away from the image border, and where the wall is seen within 75 degrees of face-on:
+    # beyond that a footprint would stretch more than CAPTURE_MAX_STRETCH (4 ~ 1 / cos 75)
+    n = np.array([-np.tan(np.radians(60.0)), 0.0, 1.0])
+    rays = np.stack([rx, ry, np.ones_like(rx)], axis=-1)
+    cos = np.abs(rays @ n) / (np.linalg.norm(rays, axis=-1) * np.linalg.norm(n))
+    inside = np.isfinite(z) & (cos > np.cos(np.radians(75.0)))
+    inside[:2], inside[-2:], inside[:, :2], inside[:, -2:] = False, False, False, False
+    assert inside.sum() > 1500
+    alpha = image[..., 3][inside]
+    assert np.mean(alpha < 0.99) == 0.0, np.mean(alpha < 0.99)
+    # unshaded: the wall's own colour, sRGB 150/255 -> linear 0.305, to 1 %
+    np.testing.assert_allclose(image[..., 1][inside], srgb_to_linear(150 / 255), rtol=0.01)

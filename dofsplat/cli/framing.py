@@ -158,7 +158,8 @@ def settings_from_args(args):
         background = tuple(float(c) for c in srgb_to_linear(args.background))
     if args.show_lod and not args.lod:
         raise DofsplatError("--show-lod needs the hierarchy: drop --no-lod")
-    return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof, shading=args.shading,
+    return RenderSettings(cutoff=args.cutoff, dof=not args.no_dof,
+                          shading=args.shading or "phong",
                           background=background, cull_backfaces=not args.no_cull,
                           lod=args.lod, lod_pixel_threshold=args.lod_threshold,
                           lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod,

@@ -241,9 +241,10 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="splat cutoff c: each Gaussian kernel is cut where its exponent "
                           f"reaches c; larger is smoother and slower (default: "
                           f"{DEFAULT_CUTOFF:g}, as in the paper)")
-    ren.add_argument("--shading", choices=("phong", "none"), default="phong",
-                     help="phong: lit by a light at the camera (default); none: the surfel "
-                          "colours as they are")
+    ren.add_argument("--shading", choices=("phong", "none"),
+                     help="phong: lit by a light at the camera; none: the surfel colours as "
+                          "they are (default: phong; none for an RGB-D capture, whose colours "
+                          "are photographs)")
     ren.add_argument("--background", nargs=3, type=unit_interval, metavar=("R", "G", "B"),
                      help="background colour, display (sRGB) values in 0..1 "
                           "(default: 0 0 0, black)")

@@ -52,6 +52,8 @@ def load_model(args):
 
     surfels = load(args.input, cache=prep_cache(args), **loader_options(args))
     args.load_info = getattr(surfels, "load_info", None)
+    if args.shading is None:  # a capture's photographed colours: unshaded (io.pcd)
+        args.shading = getattr(surfels, "shading_hint", None)
     if args.lod:
         from ..lod.cache import cached_hierarchy
 

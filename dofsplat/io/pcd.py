@@ -22,6 +22,12 @@ translation (its rotation, which PCL's viewer applies to the points, is not used
 organised clouds and for unorganised ones whose VIEWPOINT is not PCL's default
 (0 0 0 1 0 0 0, which says nothing); other clouds are oriented by
 :func:`dofsplat.prep.pointcloud.points_to_surfels`'s propagation (outwards).
+
+An organised cloud has one point per pixel, so its surfels are sized by the sensor's pixels
+(``prep.pointcloud.capture_footprints``: each a disk of 1.25 pixels seen from the sensor, an
+ellipse on a tilted surface) rather than by 3-D neighbours, which miss across the sensor's
+depth steps and leave holes; and its colours, photographs of a lit scene, are rendered
+unshaded by default (``Surfels.shading_hint``; ``--shading phong`` lights them again).
 """
 
 from __future__ import annotations
@@ -72,25 +78,38 @@ class PcdHeader:
 
 
 def read_pcd(path, *, material: Material | None = None, k: int | None = None,
-             smooth: bool = True, normalise: str = "object") -> Surfels:
+             smooth: bool = True, normalise: str | None = None) -> Surfels:
     """Load a .pcd file as surfels (see the module docstring); k: neighbours for normals
     and radii; smooth: move the points onto their neighbourhood's plane; normalise: the
     per-surfel normalisation, "object", "render" or "none" (all three: points_to_surfels).
-    DofsplatError for a damaged file or one without valid points."""
+    Default (None): "object" for an unorganised cloud; an organised one (a depth capture)
+    gets surfels sized by the sensor's pixels (``prep.pointcloud.capture_footprints``), which
+    need none, and, when it has colours (photographs, already lit), the hint to render them
+    unshaded (``Surfels.shading_hint``). DofsplatError for a damaged file or one without
+    valid points."""
     from ..prep.normalise import check_method
-    from ..prep.pointcloud import ground_up, points_to_surfels
+    from ..prep.normalise import normalise as normalise_surfels
+    from ..prep.pointcloud import capture_footprints, ground_up, points_to_surfels
 
-    check_method(normalise)
+    if normalise is not None:
+        check_method(normalise)
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
     header, columns = read_pcd_columns(path)
     positions, colors, normals, viewpoint, camera = pcd_points(header, columns, str(path))
     surfels = points_to_surfels(positions, colors, normals, k=k, viewpoint=viewpoint,
-                                smooth=smooth, normalise=normalise, source=str(path))
+                                smooth=smooth,
+                                normalise="none" if camera is not None else normalise or "object",
+                                source=str(path))
     surfels = surfels if material is None else replace(surfels, material=material)
     if camera is not None:
+        surfels = capture_footprints(surfels, camera)
+        if normalise not in (None, "none"):  # asked for: on top of the pixels' footprints
+            surfels = normalise_surfels(surfels, normalise, progress=False)
         surfels.capture = camera  # the CLI's default view: the sensor's
+        if colors is not None:
+            surfels.shading_hint = "none"  # the colours are photographs: already lit
     else:
         surfels.up_hint = ground_up(surfels)  # a z-up scan is seen upright (prep.pointcloud)
     return surfels

@@ -97,6 +97,8 @@ def write_surfels(file: Path, surfels: Surfels) -> None:
         arrays[f"capture.{name}"] = np.asarray(value)  # a depth camera's view (io.pcd)
     if getattr(surfels, "up_hint", None) is not None:
         arrays["up_hint"] = np.asarray(surfels.up_hint, np.float64)
+    if getattr(surfels, "shading_hint", None) is not None:
+        arrays["shading_hint"] = np.asarray(surfels.shading_hint)  # a capture's "none"
     file.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=f".{file.name}.", suffix=".tmp", dir=file.parent)
     tmp = Path(name)
@@ -122,6 +124,8 @@ def read_surfels(file: Path) -> Surfels | None:
                 surfels.capture = capture
             if "up_hint" in z.files:
                 surfels.up_hint = tuple(float(v) for v in z["up_hint"])
+            if "shading_hint" in z.files:
+                surfels.shading_hint = str(z["shading_hint"])
             return surfels
     except Exception:  # noqa: BLE001 - a damaged or foreign file: prepare the model again
         return None

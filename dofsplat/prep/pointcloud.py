@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import sys
 import warnings
+from dataclasses import replace
 
 import numba
 import numpy as np
@@ -162,6 +163,56 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
             surfels = normalise_surfels(surfels, normalise, progress=False)
             bar.update()
     return surfels
+
+
+# A depth capture's surfels: the footprint of a disk of this many pixels (radius) seen from
+# the sensor. 1 px would tile the image exactly (r = h, surfels.py); 1.25 px with weight 1
+# (each surfel deposits its whole disk, 1.56 x its pixel) keeps the accumulated weight above
+# 1 inside surfaces despite the sensor's depth steps (docs/formats.md)
+CAPTURE_FOOTPRINT_PX = 1.25
+CAPTURE_MAX_STRETCH = 4.0  # r_u / r_v at most: a grazing surface's footprint stays bounded
+
+
+def capture_footprints(surfels: Surfels, capture: dict,
+                       footprint_px: float = CAPTURE_FOOTPRINT_PX) -> Surfels:
+    """A depth capture's surfels sized by the sensor's pixels, not by 3-D neighbours.
+
+    A capture has one point per pixel: each surfel stands for the piece of its tangent plane
+    that its pixel sees. With J the 2 x 2 Jacobian from the tangent plane to the capture's
+    pixels (the sensor's pinhole, ``capture``: eye, frustum, size in dofsplat's frame), the
+    ellipse that projects to a circle of ``footprint_px`` pixels is V = footprint_px^2
+    (J^T J)^-1: its axes are the eigenvectors of J^T J, its radii footprint_px / sqrt(eig).
+    Seen from the sensor every surfel is then a disk of footprint_px pixels, so coverage
+    does not depend on how the surface is tilted (3-D neighbours miss across depth steps
+    and under-cover tilted surfaces: holes). Radii along a grazing surface are capped at
+    CAPTURE_MAX_STRETCH x the other. Returns elliptical surfels (tangent, radius_v) with
+    weight 1, the per-surfel normalisation replaced (the pixel grid is the partition).
+    """
+    eye = np.asarray(capture["eye"], np.float64)
+    width, height = (float(v) for v in capture["size"])
+    left, right, bottom, top, near = (float(v) for v in capture["frustum"])
+    fx, fy = width * near / (right - left), height * near / (top - bottom)  # pixels
+    p = surfels.positions.astype(np.float64) - eye  # the sensor looks along -z, y up
+    z = np.maximum(-p[:, 2], 1e-12)
+    n = surfels.normals.astype(np.float64)
+    a = np.cross(n, [0.0, 1.0, 0.0])
+    flat = np.linalg.norm(a, axis=1) < 1e-6
+    a[flat] = np.cross(n[flat], [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a, axis=1)[:, None]
+    b = np.cross(n, a)
+    # rows of d(pixel)/d(world): u = fx x / z, v = -fy y / z with z = -p_z
+    du = np.stack([fx / z, np.zeros_like(z), fx * p[:, 0] / z ** 2], axis=1)
+    dv = -np.stack([np.zeros_like(z), fy / z, fy * p[:, 1] / z ** 2], axis=1)
+    jac = np.stack([np.stack([(du * a).sum(1), (du * b).sum(1)], axis=1),
+                    np.stack([(dv * a).sum(1), (dv * b).sum(1)], axis=1)], axis=1)  # (N, 2, 2)
+    lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", jac, jac))  # ascending
+    lam = np.maximum(lam, 1e-300)
+    r_v = footprint_px / np.sqrt(lam[:, 1])
+    r_u = np.minimum(footprint_px / np.sqrt(lam[:, 0]), CAPTURE_MAX_STRETCH * r_v)
+    tangent = a * vec[:, 0, 0:1] + b * vec[:, 1, 0:1]
+    return replace(surfels, radius=r_u.astype(np.float32), radius_v=r_v.astype(np.float32),
+                   tangent=tangent.astype(np.float32),
+                   weight=np.ones(len(surfels), np.float32))
 
 
 # fraction of a scan's area that must face +z, flat (n_z > GROUND_COS), to call it z-up
