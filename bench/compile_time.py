@@ -5,7 +5,10 @@
 Runs the CPU pipeline's stages once on a two-surfel frame (LOD, the aperture's disc, soft
 reconstruction: what ``dofsplat demo`` needs) in a subprocess whose numba cache is a fresh,
 empty folder (NUMBA_CACHE_DIR), so that every kernel compiles and the user's cache is left
-alone, then once more from that cache. Prints the seconds per stage.
+alone, then once more from that cache. Prints the seconds per stage. Then the first frame
+as a user meets it: ``import dofsplat`` and one small demo frame in a fresh cache, where
+``backends.cpu.warm_up`` compiles the rasteriser in a second process beside the rest, and
+the same with that second process turned off (``warm_up`` without it, the old way).
 """
 
 from __future__ import annotations
@@ -38,12 +41,31 @@ print(f"{'total':40s} {time.perf_counter() - t0:5.1f} s")
 '''
 
 
+FIRST_FRAME = r'''
+import sys, time
+t0 = time.perf_counter()
+import dofsplat as ds
+from dofsplat.backends import cpu
+from dofsplat.demo import demo_scene
+if sys.argv[1] == "serial":
+    cpu._start_rasteriser_compile = lambda: None  # every kernel in this process
+s, cam, lens = demo_scene(160, 120)
+ds.render(s, cam, lens, ds.RenderSettings())
+print(f"first frame, {sys.argv[1]:8s} (import, compile, render) {time.perf_counter() - t0:5.1f} s")
+'''
+
+
 def main() -> int:
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
         for what in ("cold: every kernel compiles", "warm: loaded from numba's cache"):
             print(f"-- {what}")
             subprocess.run([sys.executable, "-c", STAGES], env=env, check=True)
+    print("-- the first frame in a fresh cache")
+    for mode in ("serial", "parallel", "serial", "parallel"):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+            subprocess.run([sys.executable, "-c", FIRST_FRAME, mode], env=env, check=True)
     return 0
 
 

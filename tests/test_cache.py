@@ -155,9 +155,50 @@ def test_the_first_run_says_that_it_compiles(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert cli.main(["demo", "--size", "48x36", "-o", "d.png"]) == 0
     err = capsys.readouterr().err.splitlines()
-    assert err[0].startswith("dofsplat: compiling the rendering kernels, once (about 30 s")
+    assert err[0].startswith(f"dofsplat: compiling the rendering kernels, once (about "
+                             f"{cpu.COMPILE_SECONDS} s")
     assert cli.main(["demo", "--size", "48x36", "-o", "d.png", "-q"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_the_rasteriser_compiled_apart_has_the_frame_types():
+    """``compile_rasteriser`` (a first run's second process) builds its inputs itself: they
+    must have the types and layouts that a frame's projection gives, or the frame would
+    compile every rasteriser kernel again. This session's frames compiled them (conftest's
+    warm_up): no kernel gains a signature."""
+    from dofsplat.backends import cpu
+    from dofsplat.raster import abuffer
+
+    kernels = (abuffer.rasterize_band, abuffer.bin_splats, abuffer.front_band,
+               abuffer.apply_visibility, abuffer.tile_rows_pairs)
+    before = [list(k.signatures) for k in kernels]
+    assert all(len(s) == 1 for s in before)
+    cpu.compile_rasteriser()
+    assert [list(k.signatures) for k in kernels] == before
+
+
+def test_a_first_run_compiles_the_rasteriser_beside_the_rest(monkeypatch):
+    """warm_up on a first run: the second process starts before this one compiles the cut
+    and the projection, and is waited for before the frame that needs its kernels."""
+    from dofsplat.backends import cpu
+
+    events = []
+
+    class Helper:
+        def wait(self):
+            events.append("wait")
+
+    monkeypatch.setattr(cpu, "_WARM", False)
+    monkeypatch.setattr(cpu, "kernels_compiled", lambda: False)
+    monkeypatch.setattr(cpu, "_start_rasteriser_compile",
+                        lambda: events.append("start") or Helper())
+    project = cpu.project
+    monkeypatch.setattr(cpu, "project", lambda *a, **k: events.append("project") or project(*a, **k))
+    rasterize = cpu.rasterize
+    monkeypatch.setattr(cpu, "rasterize",
+                        lambda *a, **k: events.append("rasterize") or rasterize(*a, **k))
+    cpu.warm_up()
+    assert events[:4] == ["start", "project", "wait", "project"] and "rasterize" in events[4:]
 
 
 def test_a_mesh_key_follows_the_files_it_names_only(tmp_path):
