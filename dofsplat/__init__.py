@@ -10,6 +10,7 @@ from .frame import RenderResult, RenderSettings
 from .metrics import compare
 from .render import focus_distance_at, render
 from .reference import render_reference
+from .sequence import Keyframe, animate
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels
 
@@ -18,5 +19,5 @@ __version__ = "0.1.0"
 __all__ = [
     "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",
     "RenderSettings", "focus_distance_at", "render", "HEADLIGHT", "Light", "Material",
-    "Surfels", "__version__", "compare", "render_reference",
+    "Surfels", "__version__", "compare", "render_reference", "Keyframe", "animate",
 ]

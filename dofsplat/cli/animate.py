@@ -1,0 +1,202 @@
+"""``dofsplat animate MODEL -o OUT --frames N``: a focus pull, an aperture change or a camera
+move as a video or a folder of frames, in this process or on a Dask cluster
+(:mod:`dofsplat.sequence`)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from ..errors import DofsplatError
+from .framing import check_arguments, lens_from_args, settings_from_args
+from .options import (EPILOG, EXIT_OK, HelpFormatter, add_input_options, add_view_options,
+                      finite_number, non_negative, positive_int, positive_number)
+
+_EXAMPLES = """\
+examples:
+  dofsplat animate --demo -o pull.mp4 --frames 48 --focus-from 1.5 --focus-to 4
+  dofsplat animate scan.laz -o turn.mp4 --frames 120 --orbit 360 --workers 2
+  dofsplat animate scan.laz -o frames --frames 48 --keyframes moves.json
+  dofsplat animate scan.laz -o pull.mp4 --frames 48 --aperture-from 0 --aperture-to 0.2 \\
+      --scheduler tcp://scheduler:8786
+"""
+
+
+def add_parser(commands) -> None:
+    """The ``animate`` subcommand's options."""
+    p = commands.add_parser(
+        "animate", allow_abbrev=False, epilog=_EXAMPLES + "\n" + EPILOG,
+        formatter_class=HelpFormatter,
+        help="a focus pull, aperture change or orbit as a video or frames",
+        description="Render a sequence: the camera and lens change over N frames, by the "
+                    "shortcuts below or by a keyframe file, and each frame is what 'render' "
+                    "draws for that frame's camera and lens. The model is loaded once. OUT "
+                    "is an .mp4 (H.264), a .gif or a folder of frames (frame_0000.png, ...); "
+                    "frames already in the folder are kept, so an interrupted run resumes. "
+                    "Needs pip install 'dofsplat[animate]' (Dask, PyAV).")
+    p.add_argument("input", metavar="INPUT", nargs="?",
+                   help="model file, as for 'render' (or give --demo)")
+    p.add_argument("--demo", action="store_true", help="the built-in demo scene")
+    p.add_argument("-o", "--output", metavar="OUT", required=True,
+                   help="an .mp4, a .gif, or a folder for the frames")
+    seq = p.add_argument_group("sequence")
+    seq.add_argument("--frames", metavar="N", type=int, required=True,
+                     help="number of frames")
+    seq.add_argument("--fps", metavar="F", type=positive_number, default=24.0,
+                     help="frames per second of the video (default: 24)")
+    seq.add_argument("--focus-from", metavar="P0", type=positive_number,
+                     help="focus distance of the first frame, world units")
+    seq.add_argument("--focus-to", metavar="P1", type=positive_number,
+                     help="focus distance of the last frame")
+    seq.add_argument("--aperture-from", metavar="A0", type=non_negative,
+                     help="lens diameter of the first frame, world units")
+    seq.add_argument("--aperture-to", metavar="A1", type=non_negative,
+                     help="lens diameter of the last frame")
+    seq.add_argument("--orbit", metavar="DEG", type=finite_number,
+                     help="turn the camera by DEG degrees about the target, around the up "
+                          "axis, over the sequence")
+    seq.add_argument("--keyframes", metavar="FILE.json",
+                     help="time-stamped camera and lens values, interpolated "
+                          "(README, Sequences); the shortcuts add theirs")
+    seq.add_argument("--easing", choices=("smooth", "linear"), default="smooth",
+                     help="between keyframes: smooth (default; starts and stops gently) or "
+                          "linear")
+    seq.add_argument("--frame-format", choices=("png", "npy", "exr"), default="png",
+                     help="the frames' format in a folder (default: png)")
+    seq.add_argument("--workers", metavar="N", type=positive_int,
+                     help="render on a local Dask cluster of N processes (default: in this "
+                          "process, frame after frame)")
+    seq.add_argument("--scheduler", metavar="ADDRESS",
+                     help="render on an existing Dask cluster, e.g. tcp://host:8786")
+    add_input_options(p)
+    add_view_options(p, "render")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    """Check everything, load the model once, plan the frames, render, assemble."""
+    from .. import sequence
+    from . import demo, render
+
+    _check(args)
+    check_arguments(args)
+    out = Path(args.output)
+    keys, easing = ([], args.easing)
+    if args.keyframes is not None:
+        keys, easing_file = sequence.load_keyframes(args.keyframes)
+        easing = easing_file if args.easing == "smooth" else args.easing
+    keys = keys + _shortcut_keyframes(args, sequence.Keyframe)
+    if args.workers or args.scheduler:
+        _need_dask()
+    if out.suffix.lower() == ".mp4":
+        _need_av()
+
+    if args.demo:
+        surfels, camera, default_focus, default_aperture = demo.demo_view(args)
+    else:
+        surfels = render.load_model(args)
+        camera, default_focus, default_aperture = render.model_view(args, surfels)
+    settings = settings_from_args(args)
+    lens = None
+    if settings.dof:
+        focus = args.focus if args.focus is not None else default_focus
+        lens = lens_from_args(args, focus, default_aperture)
+    if args.focus_at is not None and settings.dof:
+        keys = [sequence.Keyframe(0.0, {"focus_at": tuple(args.focus_at)})] + keys
+
+    client, cluster = _client(args)
+    try:
+        sequence.animate(surfels, keys, args.frames, camera, lens, settings, output=out,
+                         fps=args.fps, easing=easing, frame_format=args.frame_format,
+                         client=client, progress=not args.quiet and sys.stderr.isatty())
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    if not args.quiet:
+        print(f"wrote {out} ({args.frames} frames, {camera.width}x{camera.height}"
+              + (f", {args.fps:g} fps" if out.suffix else "") + ")", file=sys.stderr)
+    return EXIT_OK
+
+
+def _check(args) -> None:
+    """The user's mistakes, before any loading or writing."""
+    from ..sequence import VIDEO_SUFFIXES
+
+    if (args.input is None) == (not args.demo):
+        raise DofsplatError("give either a model file or --demo (the built-in scene), not both"
+                            if args.demo else "give a model file to animate, or --demo")
+    if args.frames < 1:
+        raise DofsplatError(f"--frames must be at least 1, got {args.frames}")
+    out = Path(args.output)
+    if out.suffix and out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise DofsplatError(f"{out}: write a sequence as .mp4, .gif or a folder (a name "
+                            "without an extension)")
+    if out.suffix and out.is_dir():
+        raise DofsplatError(f"{out} is a folder: give a file name for the video")
+    if not out.suffix and out.exists() and not out.is_dir():
+        raise DofsplatError(f"{out} exists and is not a folder")
+    if not out.resolve().parent.is_dir():
+        raise DofsplatError(f"the folder of {out} does not exist")
+    for a, b in (("focus_from", "focus_to"), ("aperture_from", "aperture_to")):
+        if (getattr(args, a) is None) != (getattr(args, b) is None):
+            raise DofsplatError(f"--{a.replace('_', '-')} and --{b.replace('_', '-')} go "
+                                "together")
+    if args.workers and args.scheduler:
+        raise DofsplatError("give --workers (a local cluster) or --scheduler (an existing "
+                            "one), not both")
+    if args.no_dof and (args.focus_from is not None or args.aperture_from is not None):
+        raise DofsplatError("--no-dof has no lens to change: drop --focus-from/--aperture-from")
+    if args.keyframes is not None and not Path(args.keyframes).is_file():
+        raise DofsplatError(f"no such keyframe file: {args.keyframes}")
+    if args.method != "ours":
+        raise DofsplatError("animate renders with --method ours")
+
+
+def _shortcut_keyframes(args, Keyframe) -> list:
+    first, last = {}, {}
+    if args.focus_from is not None:
+        first["focus"], last["focus"] = (args.focus_from,), (args.focus_to,)
+    if args.aperture_from is not None:
+        first["aperture"], last["aperture"] = (args.aperture_from,), (args.aperture_to,)
+    if args.orbit is not None:
+        first["orbit"], last["orbit"] = (0.0,), (args.orbit,)
+    return [Keyframe(0.0, first), Keyframe(1.0, last)] if first else []
+
+
+def _client(args):
+    """(client, cluster) for --workers or --scheduler, else (None, None)."""
+    if not (args.workers or args.scheduler):
+        return None, None
+    from dask.distributed import Client, LocalCluster
+
+    if args.scheduler:
+        try:
+            return Client(args.scheduler, timeout="10s"), None
+        except (OSError, TimeoutError) as e:
+            raise DofsplatError(f"cannot reach the Dask scheduler at {args.scheduler}: "
+                                f"{e}") from None
+    threads = max(1, (os.cpu_count() or 1) // args.workers)
+    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None,
+                           env={"NUMBA_NUM_THREADS": str(threads), "TQDM_DISABLE": "1"})
+    return Client(cluster), cluster
+
+
+def _need_dask() -> None:
+    try:
+        import dask.distributed  # noqa: F401
+    except ImportError:
+        raise DofsplatError("--workers and --scheduler need Dask: pip install "
+                            "'dofsplat[animate]'") from None
+
+
+def _need_av() -> None:
+    try:
+        import av  # noqa: F401
+    except ImportError:
+        raise DofsplatError("an .mp4 needs PyAV: pip install 'dofsplat[animate]' (or write "
+                            "a .gif or a folder of frames)") from None
+

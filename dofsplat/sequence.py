@@ -1,0 +1,375 @@
+"""Sequences: focus pulls, aperture changes and camera moves, rendered frame by frame.
+
+A sequence is a list of keyframes, each at a time t in [0, 1] (0 the first frame, 1 the
+last) and each giving some of: ``eye``, ``target``, ``up`` (world units), ``fov`` (degrees),
+``focus`` (the focus distance, world units), ``focus_at`` (a pixel [x, y] to autofocus on,
+turned into a distance before interpolation), ``aperture`` (the lens diameter, world
+units) and ``orbit`` (degrees about the target, around the up axis). A value a keyframe
+leaves out is interpolated between the keyframes that give it (held before the first and
+after the last); one no keyframe gives is the base camera's or lens's. Between two
+keyframes the local time is eased (``smooth``: smoothstep, a focus pull that starts and
+stops gently; or ``linear``).
+
+Frame k is ``render(surfels, camera_k, lens_k, settings)``: exactly what ``dofsplat render``
+draws for that frame's camera and lens, whichever process renders it. With a
+``dask.distributed`` client the frames are tasks: the model (with its LOD hierarchy) is
+scattered to every worker once, not shipped per task; each worker renders with
+cores / workers numba threads.
+
+Frames are written as they finish (atomically: a frame file is whole or absent), so an
+interrupted sequence into a folder resumes where it stopped; a video (.mp4, H.264 through
+PyAV, FFmpeg's bindings; or .gif through Pillow) is assembled at the end from those frames,
+in order, into a temporary file renamed into place.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera, ThinLens
+from .errors import DofsplatError
+from .frame import RenderSettings
+from .surfels import Surfels
+
+FIELDS = {"eye": 3, "target": 3, "up": 3, "fov": 1, "focus": 1, "focus_at": 2, "aperture": 1,
+          "orbit": 1}
+EASINGS = ("smooth", "linear")
+FRAME_FORMATS = ("png", "npy", "exr")
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """Some of a frame's camera and lens values at time t in [0, 1] (module docstring)."""
+
+    t: float
+    values: dict  # field name -> tuple of floats (FIELDS gives each one's length)
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """One frame's camera and lens: what ``render`` takes."""
+
+    index: int
+    camera: Camera
+    lens: ThinLens | None
+
+
+def keyframes_from_json(data, source: str = "keyframes") -> tuple[list[Keyframe], str]:
+    """(keyframes, easing) from the parsed JSON of a keyframe file:
+    ``{"easing": "smooth", "keyframes": [{"t": 0, "focus": 2.0}, {"t": 1, "focus": 5.0}]}``
+    (or the list alone). DofsplatError naming the keyframe and field for a bad value."""
+    easing = "smooth"
+    if isinstance(data, dict):
+        easing = data.get("easing", "smooth")
+        if easing not in EASINGS:
+            raise DofsplatError(f"{source}: easing must be one of {', '.join(EASINGS)}, "
+                                f"got {easing!r}")
+        data = data.get("keyframes")
+    if not isinstance(data, list) or not data:
+        raise DofsplatError(f"{source}: expected a non-empty list of keyframes (objects with "
+                            "\"t\" and camera or lens values)")
+    keys = []
+    for i, item in enumerate(data):
+        where = f"{source}: keyframe {i}"
+        if not isinstance(item, dict):
+            raise DofsplatError(f"{where} is not an object")
+        if "t" not in item:
+            raise DofsplatError(f"{where} has no \"t\" (its time, 0 the first frame, 1 the "
+                                "last)")
+        unknown = sorted(set(item) - set(FIELDS) - {"t"})
+        if unknown:
+            raise DofsplatError(f"{where}: unknown field {unknown[0]!r} (known: t, "
+                                f"{', '.join(FIELDS)})")
+        t = _numbers(item["t"], 1, f"{where}: t")[0]
+        if not 0.0 <= t <= 1.0:
+            raise DofsplatError(f"{where}: t must be in 0..1, got {t:g}")
+        values = {name: _numbers(item[name], FIELDS[name], f"{where}: {name}")
+                  for name in FIELDS if name in item}
+        if "focus" in values and "focus_at" in values:
+            raise DofsplatError(f"{where} gives both focus and focus_at")
+        keys.append(Keyframe(t, values))
+    keys.sort(key=lambda k: k.t)
+    return keys, easing
+
+
+def ease(u: float, easing: str = "smooth") -> float:
+    """Eased local time: smoothstep 3u^2 - 2u^3 (0 and 1 fixed, slope 0 at both), or u."""
+    u = min(max(u, 0.0), 1.0)
+    return u * u * (3.0 - 2.0 * u) if easing == "smooth" else u
+
+
+def interpolate(keys: list[Keyframe], name: str, t: float, easing: str = "smooth"):
+    """The value of ``name`` at time t (a tuple), or None when no keyframe gives it."""
+    have = [k for k in keys if name in k.values]
+    if not have:
+        return None
+    if t <= have[0].t:
+        return have[0].values[name]
+    for a, b in zip(have, have[1:]):
+        if t <= b.t:
+            u = ease((t - a.t) / (b.t - a.t) if b.t > a.t else 1.0, easing)
+            return tuple(x + (y - x) * u for x, y in zip(a.values[name], b.values[name]))
+    return have[-1].values[name]
+
+
+def frame_specs(keys: list[Keyframe], n_frames: int, camera: Camera, lens: ThinLens | None,
+                easing: str = "smooth", surfels: Surfels | None = None,
+                settings: RenderSettings | None = None) -> list[FrameSpec]:
+    """Each frame's camera and lens: the base ``camera`` and ``lens`` with the keyframes'
+    values at t = k / (n_frames - 1). A ``focus_at`` pixel is focused on (a pinhole frame of
+    ``surfels`` from that keyframe's camera) and interpolated as a distance."""
+    if n_frames < 1:
+        raise DofsplatError(f"a sequence needs at least 1 frame, got {n_frames}")
+    keys = _resolve_focus_at(keys, camera, surfels, settings, easing)
+    specs = []
+    for k in range(n_frames):
+        t = k / (n_frames - 1) if n_frames > 1 else 0.0
+        specs.append(FrameSpec(k, _camera_at(keys, t, camera, easing),
+                               _lens_at(keys, t, lens, easing)))
+    return specs
+
+
+def render_frame(surfels: Surfels, spec: FrameSpec, settings: RenderSettings,
+                 threads: int | None = None) -> np.ndarray:
+    """Frame ``spec`` of ``surfels``: the (H, W, 4) float32 linear RGBA image of ``render``."""
+    from .render import render
+
+    if threads:
+        import numba
+
+        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    return render(surfels, spec.camera, spec.lens, settings).image
+
+
+def frame_path(folder: Path, index: int, frame_format: str = "png") -> Path:
+    return Path(folder) / f"frame_{index:04d}.{frame_format}"
+
+
+def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: Camera,
+            lens: ThinLens | None = None, settings: RenderSettings | None = None, *,
+            output=None, fps: float = 24.0, easing: str = "smooth",
+            frame_format: str = "png", client=None, progress: bool = False):
+    """Render a sequence; returns the list of (H, W, 4) float32 frames when ``output`` is
+    None, else writes ``output`` (a folder of frame_0000.png ..., an .mp4 or a .gif) and
+    returns its path.
+
+    keyframes: ``Keyframe`` list (``keyframes_from_json``, or built directly); camera, lens:
+    the base values the keyframes change; client: a ``dask.distributed.Client`` (None:
+    render here, frame after frame). Frames already in an output folder are kept, not
+    rendered again (a video's frames wait in a folder beside it until it is assembled).
+    """
+    settings = settings or RenderSettings()
+    specs = frame_specs(keyframes, n_frames, camera, lens, easing, surfels, settings)
+    if output is None:
+        if client is not None:
+            futures = _submit(client, surfels, settings, specs)
+            return [f.result() for f in futures]
+        return [render_frame(surfels, s, settings) for s in _bar(specs, progress)]
+
+    output = Path(output)
+    video = output.suffix.lower() in VIDEO_SUFFIXES
+    if output.suffix and not video:
+        raise DofsplatError(f"{output}: a sequence is written as .mp4, .gif or a folder of "
+                            "frames (a name without an extension)")
+    folder = output.with_name(f".{output.name}.frames") if video else output
+    frame_format = "png" if video else frame_format
+    folder.mkdir(parents=True, exist_ok=True)
+    todo = [s for s in specs if not frame_path(folder, s.index, frame_format).exists()]
+    _render_into(folder, todo, len(specs), surfels, settings, frame_format, client, progress)
+    if video:
+        frames = [frame_path(folder, s.index) for s in specs]
+        write_video(output, frames, fps)
+        shutil.rmtree(folder, ignore_errors=True)
+    return output
+
+
+def write_video(path: Path, frames: list[Path], fps: float) -> None:
+    """Assemble PNG frames, in order, into an .mp4 (H.264, yuv420p) or a .gif, atomically."""
+    from PIL import Image
+
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if path.suffix.lower() == ".gif":
+            images = [Image.open(f).convert("RGB") for f in frames]
+            images[0].save(tmp, save_all=True, append_images=images[1:],
+                           duration=max(1, round(1000.0 / fps)), loop=0)
+        else:
+            _write_mp4(tmp, frames, fps)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# -- the parts ----------------------------------------------------------------------------
+
+
+def _numbers(value, n: int, what: str) -> tuple:
+    items = value if isinstance(value, (list, tuple)) else [value]
+    if len(items) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                  and math.isfinite(v) for v in items):
+        raise DofsplatError(f"{what} must be {'a number' if n == 1 else f'{n} numbers'}, "
+                            f"got {value!r}")
+    return tuple(float(v) for v in items)
+
+
+def _resolve_focus_at(keys, camera, surfels, settings, easing):
+    """Keyframes with each ``focus_at`` pixel replaced by the depth seen there."""
+    from .render import focus_distance_at
+
+    out = []
+    for key in keys:
+        if "focus_at" in key.values:
+            if surfels is None:
+                raise DofsplatError("a keyframe's focus_at needs the model to focus on")
+            x, y = key.values["focus_at"]
+            cam = _camera_at(keys, key.t, camera, easing)
+            d = focus_distance_at(surfels, cam, x, y, settings=settings)
+            values = {k: v for k, v in key.values.items() if k != "focus_at"}
+            key = Keyframe(key.t, {**values, "focus": (d,)})
+        out.append(key)
+    return out
+
+
+def _camera_at(keys, t, camera: Camera, easing) -> Camera:
+    eye = np.asarray(interpolate(keys, "eye", t, easing) or camera.eye, np.float64)
+    target = np.asarray(interpolate(keys, "target", t, easing) or camera.target, np.float64)
+    up = np.asarray(interpolate(keys, "up", t, easing) or camera.up, np.float64)
+    orbit = interpolate(keys, "orbit", t, easing)
+    if orbit is not None and orbit[0] != 0.0:
+        eye = target + _rotate(eye - target, up / np.linalg.norm(up), math.radians(orbit[0]))
+    fov = interpolate(keys, "fov", t, easing)
+    changed = fov is not None
+    return replace(camera, eye=tuple(eye.tolist()), target=tuple(target.tolist()),
+                   up=tuple(up.tolist()), fov_y=fov[0] if changed else camera.fov_y,
+                   frustum=None if changed else camera.frustum)
+
+
+def _lens_at(keys, t, lens: ThinLens | None, easing) -> ThinLens | None:
+    focus = interpolate(keys, "focus", t, easing)
+    aperture = interpolate(keys, "aperture", t, easing)
+    if lens is None:
+        return None
+    if focus is None and aperture is None:
+        return lens
+    kw = {"focus_distance": focus[0] if focus else lens.focus_distance,
+          "focal_length": lens.focal_length, "bokeh": lens.bokeh, "blades": lens.blades,
+          "blade_rotation": lens.blade_rotation}
+    if aperture is not None or lens.f_number is None:
+        kw["aperture"] = aperture[0] if aperture else lens.diameter
+    else:
+        kw["f_number"] = lens.f_number
+    return ThinLens(**kw)
+
+
+def _rotate(v, axis, angle):
+    """v turned by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return v * c + np.cross(axis, v) * s + axis * float(axis @ v) * (1.0 - c)
+
+
+def _bar(items, progress, total=None):
+    from tqdm.auto import tqdm
+
+    return tqdm(items, total=total, unit="frame", desc="frames", disable=not progress,
+                leave=False)
+
+
+def _submit(client, surfels, settings, specs):
+    """One task per frame; the model scattered to every worker once."""
+    workers = max(1, len(client.scheduler_info().get("workers", {})) or 1)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    model = client.scatter(surfels, broadcast=True)
+    return [client.submit(render_frame, model, s, settings, threads, pure=False,
+                          key=f"dofsplat-frame-{s.index}-{os.getpid()}-{id(specs)}")
+            for s in specs]
+
+
+def _write_frame(folder: Path, index: int, image: np.ndarray, frame_format: str) -> None:
+    from .io import write_image
+
+    write_image(frame_path(folder, index, frame_format), image)  # atomic
+
+
+def _render_into(folder, todo, total, surfels, settings, frame_format, client, progress):
+    """Render ``todo`` into ``folder``, writing each frame as it finishes; a frame that
+    fails is named and stops the sequence (the frames written so far stay)."""
+    bar = _bar([], progress, total=total)
+    bar.update(total - len(todo))
+    try:
+        if client is None:
+            for spec in todo:
+                _write_frame(folder, spec.index, _checked(render_frame, surfels, spec,
+                                                          settings), frame_format)
+                bar.update()
+            return
+        from dask.distributed import as_completed
+
+        futures = _submit(client, surfels, settings, todo)
+        index = {f.key: s.index for f, s in zip(futures, todo)}
+        try:
+            for future in as_completed(futures):
+                k = index[future.key]
+                try:
+                    image = future.result()
+                except DofsplatError as e:
+                    raise DofsplatError(f"frame {k}: {e}") from None
+                _write_frame(folder, k, image, frame_format)
+                bar.update()
+        finally:
+            for f in futures:
+                f.cancel()
+    finally:
+        bar.close()
+
+
+def _checked(fn, surfels, spec, settings):
+    try:
+        return fn(surfels, spec, settings)
+    except DofsplatError as e:
+        raise DofsplatError(f"frame {spec.index}: {e}") from None
+
+
+def _write_mp4(path, frames, fps):
+    import av
+    from fractions import Fraction
+    from PIL import Image
+
+    with av.open(str(path), mode="w", format="mp4") as box:
+        stream = None
+        for f in frames:
+            rgb = np.asarray(Image.open(f).convert("RGB"))
+            if stream is None:
+                stream = box.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+                # H.264 in yuv420p wants even sizes: the last row or column is repeated
+                stream.height, stream.width = rgb.shape[0] + rgb.shape[0] % 2, rgb.shape[1] + rgb.shape[1] % 2
+                stream.pix_fmt = "yuv420p"
+                stream.options = {"crf": "18"}
+            rgb = np.pad(rgb, ((0, rgb.shape[0] % 2), (0, rgb.shape[1] % 2), (0, 0)), mode="edge")
+            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                box.mux(packet)
+        for packet in stream.encode():
+            box.mux(packet)
+
+
+def load_keyframes(path) -> tuple[list[Keyframe], str]:
+    """``keyframes_from_json`` of a JSON file; DofsplatError if it cannot be read."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DofsplatError(f"no such keyframe file: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DofsplatError(f"{path}: not a readable JSON keyframe file ({e})") from None
+    return keyframes_from_json(data, str(path))

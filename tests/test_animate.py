@@ -1,0 +1,184 @@
+"""Sequences (dofsplat.sequence, ``dofsplat animate``): each frame is a render, the
+keyframes interpolate as documented, videos decode, runs resume, mistakes cost nothing."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import dofsplat as ds
+from dofsplat import cli, sequence
+from dofsplat.demo import demo_scene
+from dofsplat.errors import DofsplatError
+
+W, H = 64, 48
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return demo_scene(W, H)
+
+
+def run(argv, capsys):
+    status = cli.main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return status, out.err
+
+
+def test_keyframe_interpolation_is_eased_between_keys():
+    keys, easing = sequence.keyframes_from_json(
+        {"keyframes": [{"t": 0.0, "focus": 2.0}, {"t": 0.5, "focus": 4.0, "aperture": 0.1},
+                       {"t": 1.0, "focus": 3.0}]})
+    assert easing == "smooth"
+    f = lambda t: sequence.interpolate(keys, "focus", t)[0]  # noqa: E731
+    assert f(0.0) == 2.0 and f(0.5) == 4.0 and f(1.0) == 3.0  # keys are met exactly
+    assert f(0.25) == pytest.approx(3.0)  # smoothstep is 1/2 at the middle
+    assert f(0.125) == pytest.approx(2.0 + 2.0 * (3 * 0.25**2 - 2 * 0.25**3))
+    values = [f(t) for t in np.linspace(0, 0.5, 21)]
+    assert all(b >= a for a, b in zip(values, values[1:]))  # monotone between two keys
+    # a value given by one key is held everywhere; one given by none is None
+    assert sequence.interpolate(keys, "aperture", 0.9) == (0.1,)
+    assert sequence.interpolate(keys, "eye", 0.3) is None
+    lin = sequence.interpolate(keys, "focus", 0.125, "linear")[0]
+    assert lin == pytest.approx(2.5)
+
+
+def test_frame_specs_focus_pull_and_orbit(scene):
+    surfels, camera, lens = scene
+    keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "orbit": (0.0,)}),
+            sequence.Keyframe(1.0, {"focus": (4.0,), "orbit": (90.0,)})]
+    specs = sequence.frame_specs(keys, 5, camera, lens, "linear")
+    assert [s.lens.focus_distance for s in specs] == pytest.approx([1.5, 2.125, 2.75, 3.375, 4.0])
+    assert all(s.lens.diameter == lens.diameter for s in specs)
+    # the last eye is the first turned by 90 degrees about the target, around up
+    e0 = np.subtract(camera.eye, camera.target)
+    e1 = np.subtract(specs[-1].camera.eye, camera.target)
+    up = np.asarray(camera.up) / np.linalg.norm(camera.up)
+    assert float(e1 @ up) == pytest.approx(float(e0 @ up))  # the height stays
+    h0, h1 = e0 - (e0 @ up) * up, e1 - (e1 @ up) * up
+    assert float(h0 @ h1) == pytest.approx(0.0, abs=1e-9)  # a quarter turn
+    assert np.linalg.norm(h1) == pytest.approx(np.linalg.norm(h0))
+
+
+def test_every_frame_equals_a_single_render(scene):
+    """In this process and on two Dask worker processes (one numba thread each): frame k is
+    ``render`` of frame k's camera and lens, bit for bit (the renderer does not depend on
+    the thread count)."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    surfels, camera, lens = scene
+    keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "aperture": (0.05,)}),
+            sequence.Keyframe(1.0, {"focus": (4.0,), "aperture": (0.2,)})]
+    settings = ds.RenderSettings()
+    frames = sequence.animate(surfels, keys, 3, camera, lens, settings)
+    specs = sequence.frame_specs(keys, 3, camera, lens)
+    for frame, spec in zip(frames, specs):
+        np.testing.assert_array_equal(frame, ds.render(surfels, spec.camera, spec.lens,
+                                                       settings).image)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        distributed = sequence.animate(surfels, keys, 3, camera, lens, settings,
+                                       client=client)
+    for a, b in zip(frames, distributed):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_cli_frame_equals_render(tmp_path, capsys):
+    out = tmp_path / "frames"
+    status, err = run(["animate", "--demo", "-o", out, "--frames", 3, "--size", f"{W}x{H}",
+                       "--focus-from", 1.5, "--focus-to", 4, "--frame-format", "npy"], capsys)
+    assert status == 0 and "wrote" in err
+    assert sorted(p.name for p in out.iterdir()) == [f"frame_000{i}.npy" for i in range(3)]
+    assert run(["demo", "--size", f"{W}x{H}", "--focus", 2.75, "-o", tmp_path / "mid.npy",
+                "-q"], capsys)[0] == 0
+    np.testing.assert_array_equal(np.load(out / "frame_0001.npy"), np.load(tmp_path / "mid.npy"))
+
+
+def test_mp4_and_gif_decode_to_the_frames(tmp_path, capsys):
+    av = pytest.importorskip("av")
+    from PIL import Image
+
+    mp4, gif = tmp_path / "pull.mp4", tmp_path / "pull.gif"
+    for out in (mp4, gif):
+        status, _ = run(["animate", "--demo", "-o", out, "--frames", 5, "--size", "63x47",
+                         "--aperture-from", 0, "--aperture-to", 0.2, "-q"], capsys)
+        assert status == 0
+    with av.open(str(mp4)) as box:
+        frames = list(box.decode(video=0))
+    assert len(frames) == 5
+    assert (frames[0].width, frames[0].height) == (64, 48)  # H.264 wants even sizes
+    assert Image.open(gif).n_frames == 5 and Image.open(gif).size == (63, 47)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no leftovers
+
+
+def test_a_rerun_skips_the_frames_that_exist(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "frames"
+    argv = ["animate", "--demo", "-o", out, "--frames", 3, "--size", f"{W}x{H}",
+            "--focus-from", 1.5, "--focus-to", 4, "-q"]
+    assert run(argv, capsys)[0] == 0
+    (out / "frame_0001.png").unlink()
+    rendered = []
+    original = sequence.render_frame
+    monkeypatch.setattr(sequence, "render_frame",
+                        lambda s, spec, *a: rendered.append(spec.index) or original(s, spec, *a))
+    assert run(argv, capsys)[0] == 0
+    assert rendered == [1] and (out / "frame_0001.png").exists()
+
+
+def test_ctrl_c_leaves_whole_frames_and_no_video(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "pull.gif"
+    original = sequence.render_frame
+
+    def interrupted(s, spec, *a):
+        if spec.index == 2:
+            raise KeyboardInterrupt
+        return original(s, spec, *a)
+
+    monkeypatch.setattr(sequence, "render_frame", interrupted)
+    argv = ["animate", "--demo", "-o", out, "--frames", 4, "--size", f"{W}x{H}", "-q",
+            "--focus-from", 1.5, "--focus-to", 4]
+    assert run(argv, capsys)[0] == 130
+    assert not out.exists()
+    waiting = tmp_path / ".pull.gif.frames"
+    assert sorted(p.name for p in waiting.iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    monkeypatch.setattr(sequence, "render_frame", original)
+    assert run(argv, capsys)[0] == 0  # resumes: frames 2 and 3, then the video
+    assert out.exists() and not waiting.exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--frames", "0"], "--frames must be at least 1"),
+    (["--frames", "3", "-o", "x.avi"], "write a sequence as .mp4, .gif or a folder"),
+    (["--frames", "3", "--focus-from", "2"], "go together"),
+    (["--frames", "3", "--keyframes", "KEYS"], "keyframe 1 has no \"t\""),
+    (["--frames", "3", "--keyframes", "BADFIELD"], "unknown field 'zoom'"),
+])
+def test_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch, extra, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "KEYS").write_text(json.dumps([{"t": 0, "focus": 2}, {"focus": 3}]))
+    (tmp_path / "BADFIELD").write_text(json.dumps({"keyframes": [{"t": 0, "zoom": 2}]}))
+    before = sorted(p.name for p in tmp_path.iterdir())
+    argv = ["animate", "--demo", "--size", f"{W}x{H}"]
+    argv += extra if "-o" in extra else extra + ["-o", "seq.mp4"]
+    status, err = run(argv, capsys)
+    assert status == 2
+    assert err.count("\n") == 1 and message in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_keyframe_focus_at_a_pixel(scene):
+    """A keyframe may focus on a pixel: it becomes the depth seen there."""
+    surfels, camera, lens = scene
+    keys = [sequence.Keyframe(0.0, {"focus_at": (W / 2, H / 2)}),
+            sequence.Keyframe(1.0, {"focus": (5.0,)})]
+    specs = sequence.frame_specs(keys, 2, camera, lens, surfels=surfels)
+    seen = ds.focus_distance_at(surfels, camera, W / 2, H / 2)
+    assert specs[0].lens.focus_distance == pytest.approx(seen)
+    assert specs[1].lens.focus_distance == 5.0
+    with pytest.raises(DofsplatError, match="focus and focus_at"):
+        sequence.keyframes_from_json([{"t": 0, "focus": 1, "focus_at": [1, 1]}])
+    assert math.isfinite(seen)
