@@ -182,3 +182,24 @@ def test_keyframe_focus_at_a_pixel(scene):
     with pytest.raises(DofsplatError, match="focus and focus_at"):
         sequence.keyframes_from_json([{"t": 0, "focus": 1, "focus_at": [1, 1]}])
     assert math.isfinite(seen)
+
+
+def test_cli_on_an_existing_scheduler(tmp_path, capsys):
+    """--scheduler ADDRESS sends the frames to a running cluster (here a LocalCluster's
+    scheduler): the frames are the in-process ones."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import LocalCluster
+
+    argv = ["animate", "--demo", "--frames", 2, "--size", f"{W}x{H}", "--frame-format", "npy",
+            "--focus-from", 1.5, "--focus-to", 4, "-q"]
+    assert run(argv + ["-o", tmp_path / "here"], capsys)[0] == 0
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        assert run(argv + ["-o", tmp_path / "there", "--scheduler",
+                           cluster.scheduler_address], capsys)[0] == 0
+    for k in range(2):
+        np.testing.assert_array_equal(np.load(tmp_path / "here" / f"frame_000{k}.npy"),
+                                      np.load(tmp_path / "there" / f"frame_000{k}.npy"))
+    status, err = run(argv + ["-o", tmp_path / "x", "--scheduler", "tcp://127.0.0.1:9"],
+                      capsys)
+    assert status == 2 and "cannot reach the Dask scheduler" in err
