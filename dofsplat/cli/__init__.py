@@ -5,6 +5,7 @@
     dofsplat reference (MODEL.ply | --demo) [-o reference.png] [--samples N] [the same options]
     dofsplat compare A B [--diff DIFF.png] [--json FILE.json]
     dofsplat convert INPUT -o OUT.ply [--k K] [--normalise object|render|none]
+    dofsplat view (MODEL | --demo) [--port N] [--no-browser] [the same options]
     dofsplat animate (MODEL | --demo) -o OUT.mp4 --frames N [--focus-from P0 --focus-to P1 ...]
     dofsplat cache [--info | --clear [all|surfels|lod]]
 
@@ -34,7 +35,7 @@ import sys
 import warnings
 
 from ..errors import DofsplatError
-from . import animate, cache, compare, convert, demo, reference, render
+from . import animate, cache, compare, convert, demo, reference, render, view
 from .framing import format_count
 from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatter, Parser,
                       default_output)
@@ -42,7 +43,7 @@ from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatt
 __all__ = ["main", "build_parser", "default_output", "format_count", "EXIT_OK", "EXIT_USAGE",
            "EXIT_INTERRUPTED"]
 
-COMMANDS = (render, demo, reference, animate, compare, convert, cache)  # in the order --help lists them
+COMMANDS = (render, demo, view, reference, animate, compare, convert, cache)  # in the order --help lists them
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,77 @@
+"""``dofsplat view MODEL``: the model in the browser viewer (:mod:`dofsplat.viewer`): orbit,
+click to focus, turn the aperture, see the depth of field change."""
+
+from __future__ import annotations
+
+import sys
+
+from ..errors import DofsplatError
+from .framing import check_arguments, lens_from_args, settings_from_args
+from .options import EPILOG, EXIT_OK, HelpFormatter, add_input_options, add_view_options
+
+
+def add_parser(commands) -> None:
+    """The ``view`` subcommand's options."""
+    p = commands.add_parser(
+        "view", allow_abbrev=False, epilog="examples:\n  dofsplat view --demo\n"
+        "  dofsplat view scan.laz --port 8081 --no-browser\n\n" + EPILOG,
+        formatter_class=HelpFormatter,
+        help="the model in a browser viewer: orbit, click to focus",
+        description="Serve the model in a web viewer (viser): orbit, pan and zoom with the "
+                    "mouse, click on the model to focus there, set the focus distance, lens "
+                    "and LOD in the panel, save the frame. The options below set the first "
+                    "view, lens and rendering, as for 'render'. Needs pip install "
+                    "'dofsplat[view]'.")
+    p.add_argument("input", metavar="INPUT", nargs="?",
+                   help="model file, as for 'render' (or give --demo)")
+    p.add_argument("--demo", action="store_true", help="the built-in demo scene")
+    srv = p.add_argument_group("server")
+    srv.add_argument("--port", metavar="N", type=int, default=8080,
+                     help="the port to serve on (default: 8080)")
+    srv.add_argument("--host", metavar="ADDR", default="0.0.0.0",
+                     help="the address to listen on (default: 0.0.0.0, every interface)")
+    srv.add_argument("--no-browser", action="store_true",
+                     help="do not open a browser; only print the address")
+    add_input_options(p)
+    add_view_options(p, "render")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    """Check the options, load the model, then serve until Ctrl-C."""
+    from . import demo, render
+
+    if (args.input is None) == (not args.demo):
+        raise DofsplatError("give either a model file or --demo (the built-in scene), not both"
+                            if args.demo else "give a model file to view, or --demo")
+    if not 0 <= args.port <= 65535:
+        raise DofsplatError(f"--port must be 0..65535, got {args.port}")
+    if args.method != "ours":
+        raise DofsplatError("the viewer renders with --method ours")
+    try:
+        import viser  # noqa: F401 - fail before loading the model
+    except ImportError:
+        raise DofsplatError("the viewer needs viser: pip install 'dofsplat[view]'") from None
+    check_arguments(args)
+    if args.demo:
+        surfels, camera, default_focus, default_aperture = demo.demo_view(args)
+    else:
+        surfels = render.load_model(args)
+        camera, default_focus, default_aperture = render.model_view(args, surfels)
+    settings = settings_from_args(args)
+    args.no_dof = False  # the viewer always has a lens: its diameter may be set to 0
+    lens = lens_from_args(args, args.focus or default_focus, default_aperture)
+    if args.focus_at is not None:
+        from ..render import focus_distance_at
+        from dataclasses import replace
+
+        lens = replace(lens, focus_distance=focus_distance_at(surfels, camera, *args.focus_at,
+                                                              settings=settings))
+    from ..viewer import view
+
+    log = (lambda m: None) if args.quiet else None
+    view(surfels, camera, lens, settings, port=args.port, host=args.host,
+         open_browser=not args.no_browser, log=log)
+    if not args.quiet:
+        print("dofsplat: viewer stopped", file=sys.stderr)
+    return EXIT_OK
