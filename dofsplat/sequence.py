@@ -183,6 +183,7 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
     folder = output.with_name(f".{output.name}.frames") if video else output
     frame_format = "png" if video else frame_format
     folder.mkdir(parents=True, exist_ok=True)
+    _claim(folder, specs, settings, surfels, frame_format)
     todo = [s for s in specs if not frame_path(folder, s.index, frame_format).exists()]
     _render_into(folder, todo, len(specs), surfels, settings, frame_format, client, progress)
     if video:
@@ -294,6 +295,35 @@ def _submit(client, surfels, settings, specs):
     return [client.submit(render_frame, model, s, settings, threads, pure=False,
                           key=f"dofsplat-frame-{s.index}-{os.getpid()}-{id(specs)}")
             for s in specs]
+
+
+MANIFEST = ".dofsplat-sequence.json"
+
+
+def _claim(folder: Path, specs, settings, surfels, frame_format) -> None:
+    """Mark ``folder`` as this sequence's (a hash of every frame's camera and lens, the
+    settings and the model); a folder marked by another sequence is refused, so a resumed
+    run never mixes frames of two sequences."""
+    import hashlib
+
+    digest = hashlib.sha256(repr((specs, settings, frame_format, len(surfels))).encode())
+    digest.update(np.ascontiguousarray(surfels.positions[:: max(1, len(surfels) // 4096)]).tobytes())
+    key = digest.hexdigest()[:20]
+    path = Path(folder) / MANIFEST
+    if path.exists():
+        try:
+            have = json.loads(path.read_text(encoding="utf-8")).get("sequence")
+        except (OSError, ValueError):
+            have = None
+        if have != key:
+            raise DofsplatError(f"{folder} holds the frames of another sequence (other "
+                                "arguments or model): give another folder, or delete it")
+        return
+    if any(Path(folder).glob("frame_*")):
+        raise DofsplatError(f"{folder} already holds frame files that no dofsplat sequence "
+                            "wrote: give another folder")
+    path.write_text(json.dumps({"sequence": key, "frames": len(specs)}) + "\n",
+                    encoding="utf-8")
 
 
 def _write_frame(folder: Path, index: int, image: np.ndarray, frame_format: str) -> None:

@@ -92,7 +92,8 @@ def test_cli_frame_equals_render(tmp_path, capsys):
     status, err = run(["animate", "--demo", "-o", out, "--frames", 3, "--size", f"{W}x{H}",
                        "--focus-from", 1.5, "--focus-to", 4, "--frame-format", "npy"], capsys)
     assert status == 0 and "wrote" in err
-    assert sorted(p.name for p in out.iterdir()) == [f"frame_000{i}.npy" for i in range(3)]
+    assert sorted(p.name for p in out.iterdir()) == ([".dofsplat-sequence.json"]
+                                                     + [f"frame_000{i}.npy" for i in range(3)])
     assert run(["demo", "--size", f"{W}x{H}", "--focus", 2.75, "-o", tmp_path / "mid.npy",
                 "-q"], capsys)[0] == 0
     np.testing.assert_array_equal(np.load(out / "frame_0001.npy"), np.load(tmp_path / "mid.npy"))
@@ -127,6 +128,9 @@ def test_a_rerun_skips_the_frames_that_exist(tmp_path, capsys, monkeypatch):
                         lambda s, spec, *a: rendered.append(spec.index) or original(s, spec, *a))
     assert run(argv, capsys)[0] == 0
     assert rendered == [1] and (out / "frame_0001.png").exists()
+    # other arguments into the same folder: refused, the frames left alone
+    status, err = run(argv[:-1] + ["--focus-to", 5, "-q"], capsys)
+    assert status == 2 and "holds the frames of another sequence" in err
 
 
 def test_ctrl_c_leaves_whole_frames_and_no_video(tmp_path, capsys, monkeypatch):
@@ -144,7 +148,8 @@ def test_ctrl_c_leaves_whole_frames_and_no_video(tmp_path, capsys, monkeypatch):
     assert run(argv, capsys)[0] == 130
     assert not out.exists()
     waiting = tmp_path / ".pull.gif.frames"
-    assert sorted(p.name for p in waiting.iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    assert sorted(p.name for p in waiting.glob("frame_*")) == ["frame_0000.png",
+                                                               "frame_0001.png"]
     monkeypatch.setattr(sequence, "render_frame", original)
     assert run(argv, capsys)[0] == 0  # resumes: frames 2 and 3, then the video
     assert out.exists() and not waiting.exists()
