@@ -11,6 +11,7 @@ from .metrics import compare
 from .render import focus_distance_at, render
 from .reference import render_reference
 from .sequence import Keyframe, animate
+from .viewer import view
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels
 
@@ -19,5 +20,5 @@ __version__ = "0.1.0"
 __all__ = [
     "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",
     "RenderSettings", "focus_distance_at", "render", "HEADLIGHT", "Light", "Material",
-    "Surfels", "__version__", "compare", "render_reference", "Keyframe", "animate",
+    "Surfels", "__version__", "compare", "render_reference", "Keyframe", "animate", "view",
 ]

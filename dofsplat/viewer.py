@@ -347,12 +347,16 @@ class _Session:
 
 def render_options(camera: Camera, lens: ThinLens, settings: RenderSettings) -> str:
     """The ``dofsplat render MODEL`` options that draw this camera and lens."""
+    def num(x) -> str:  # no exponent: argparse reads "-1e-05" as an option
+        text = f"{x:.9g}"
+        return text if "e" not in text else f"{x:.12f}".rstrip("0").rstrip(".")
+
     def v(xs):
-        return " ".join(f"{x:.9g}" for x in xs)
+        return " ".join(num(x) for x in xs)
 
     opts = [f"--size {camera.width}x{camera.height}", f"--eye {v(camera.eye)}",
-            f"--target {v(camera.target)}", f"--up {v(camera.up)}", f"--fov {camera.fov_y:.9g}",
-            f"--focus {lens.focus_distance:.9g}", f"--aperture {lens.diameter:.9g}",
+            f"--target {v(camera.target)}", f"--up {v(camera.up)}", f"--fov {num(camera.fov_y)}",
+            f"--focus {num(lens.focus_distance)}", f"--aperture {num(lens.diameter)}",
             f"--bokeh {lens.bokeh}"]
     if lens.blades:
         opts.append(f"--blades {lens.blades}")

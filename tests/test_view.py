@@ -122,7 +122,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium: apt-get install chromium (Debian)")
-def test_click_to_focus_in_a_browser():
+def test_click_to_focus_in_a_browser(tmp_path):
     """``dofsplat view --demo`` driven by headless Chromium: a frame arrives, a click on the
     floor sets the panel's "Focus distance" to the depth there. The viewer renders the
     demo's camera at the page's 800 x 600, so the expected depth is that of a pinhole frame
@@ -134,7 +134,8 @@ def test_click_to_focus_in_a_browser():
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "dofsplat", "view", "--demo", "--port",
                              str(port), "--host", "127.0.0.1", "--no-browser"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
     lines = []
     threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True).start()
 
@@ -169,6 +170,8 @@ def test_click_to_focus_in_a_browser():
                    and time.monotonic() - t0 < 10):
                 time.sleep(0.1)
             after = float(field.input_value())
+            page.get_by_role("button", name="Save image").click()
+            wait_for("wrote view-")
             browser.close()
     finally:
         proc.terminate()
@@ -177,6 +180,18 @@ def test_click_to_focus_in_a_browser():
     expected = ds.focus_distance_at(surfels, camera, 400.5, 360.5)
     assert after != before
     assert after == pytest.approx(expected, rel=0.02)
+    # "Save image": the PNG, and the JSON whose options make `dofsplat demo` draw it again
+    import json
+
+    saved = json.loads(next(tmp_path.glob("view-*.json")).read_text())
+    assert saved["camera"]["width"] == 800 and saved["lens"]["focus_distance"] == pytest.approx(after, rel=1e-4)
+    again = tmp_path / "again.png"
+    assert cli.main(["demo", *saved["render_options"].split(), "-o", str(again), "-q"]) == 0
+    from dofsplat.io import read_image
+    from dofsplat.metrics import compare
+
+    score = compare(read_image(next(tmp_path.glob("view-*.png"))), read_image(again))
+    assert score["psnr"] > 50  # the same frame: 8-bit PNGs from options printed to 9 digits
 
 
 def test_ctrl_c_stops_the_server_cleanly():
