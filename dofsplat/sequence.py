@@ -288,13 +288,25 @@ def _bar(items, progress, total=None):
 
 
 def _submit(client, surfels, settings, specs):
-    """One task per frame; the model scattered to every worker once."""
-    workers = max(1, len(client.scheduler_info().get("workers", {})) or 1)
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    """One task per frame; the model scattered to every worker once. Each worker renders
+    with its machine's cores / the workers on that machine numba threads."""
+    from collections import Counter
+
+    workers = client.scheduler_info().get("workers", {})
+    per_host = dict(Counter(info.get("host") for info in workers.values()))
     model = client.scatter(surfels, broadcast=True)
-    return [client.submit(render_frame, model, s, settings, threads, pure=False,
+    return [client.submit(_render_on_worker, model, s, settings, per_host, pure=False,
                           key=f"dofsplat-frame-{s.index}-{os.getpid()}-{id(specs)}")
             for s in specs]
+
+
+def _render_on_worker(surfels, spec, settings, per_host):
+    """``render_frame`` in a Dask worker, sharing its machine's cores with its neighbours."""
+    from distributed import get_worker
+
+    host = get_worker().address.split("://")[-1].rsplit(":", 1)[0]
+    threads = max(1, (os.cpu_count() or 1) // max(1, per_host.get(host, 1)))
+    return render_frame(surfels, spec, settings, threads)
 
 
 MANIFEST = ".dofsplat-sequence.json"

@@ -298,8 +298,10 @@ class _Session:
             try:
                 camera, lens, settings = self.current(kind)
                 result = render(self.surfels, camera, lens, settings)
-            except DofsplatError as e:
+            except Exception as e:  # noqa: BLE001 - said in the panel; the thread goes on
                 self.status.content = f"**Cannot render:** {e}"
+                if not isinstance(e, DofsplatError):
+                    self.log(f"render failed: {type(e).__name__}: {e}")
                 with self.lock:
                     self.state.done(kind)
                 continue
@@ -309,7 +311,6 @@ class _Session:
             self.client.scene.set_background_image(rgb, format="png",
                                                    depth=depth.astype(np.float32))
             self.depth = result.depth
-            self.last = (camera, lens, settings, kind)
             self.status.content = (f"{camera.width}x{camera.height}, "
                                    f"{result.stats['total_ms']:.0f} ms"
                                    + (" (moving: reduced)" if kind == "low" else ""))
