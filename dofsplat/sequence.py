@@ -24,11 +24,13 @@ in order, into a temporary file renamed into place.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
 import tempfile
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -44,6 +46,7 @@ FIELDS = {"eye": 3, "target": 3, "up": 3, "fov": 1, "focus": 1, "focus_at": 2, "
 EASINGS = ("smooth", "linear")
 FRAME_FORMATS = ("png", "npy", "exr")
 VIDEO_SUFFIXES = (".mp4", ".gif")
+MANIFEST = ".dofsplat-sequence.json"  # in a frame folder: which sequence its frames are
 
 
 @dataclass(frozen=True)
@@ -99,6 +102,18 @@ def keyframes_from_json(data, source: str = "keyframes") -> tuple[list[Keyframe]
         keys.append(Keyframe(t, values))
     keys.sort(key=lambda k: k.t)
     return keys, easing
+
+
+def load_keyframes(path) -> tuple[list[Keyframe], str]:
+    """``keyframes_from_json`` of a JSON file; DofsplatError if it cannot be read."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DofsplatError(f"no such keyframe file: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DofsplatError(f"{path}: not a readable JSON keyframe file ({e})") from None
+    return keyframes_from_json(data, str(path))
 
 
 def ease(u: float, easing: str = "smooth") -> float:
@@ -158,22 +173,37 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
             lens: ThinLens | None = None, settings: RenderSettings | None = None, *,
             output=None, fps: float = 24.0, easing: str = "smooth",
             frame_format: str = "png", client=None, progress: bool = False):
-    """Render a sequence; returns the list of (H, W, 4) float32 frames when ``output`` is
-    None, else writes ``output`` (a folder of frame_0000.png ..., an .mp4 or a .gif) and
-    returns its path.
+    """Render a sequence; returns the ``n_frames`` frames, each an (H, W, 4) float32 linear
+    RGBA image as ``render`` gives, when ``output`` is None; else writes ``output`` (a
+    folder of frame_0000.png ..., an .mp4 or a .gif) and returns its path.
 
-    keyframes: ``Keyframe`` list (``keyframes_from_json``, or built directly); camera, lens:
-    the base values the keyframes change; client: a ``dask.distributed.Client`` (None:
-    render here, frame after frame). Frames already in an output folder are kept, not
-    rendered again (a video's frames wait in a folder beside it until it is assembled).
+    keyframes: ``Keyframe`` list (``keyframes_from_json``, or built directly, e.g.
+    ``Keyframe(0.0, {"focus": (2.0,)})``; distances in world units, angles in degrees);
+    camera, lens: the base values the keyframes change (lens None: pinhole frames);
+    fps: the video's frames per second; easing: "smooth" or "linear" between keyframes;
+    frame_format: png, npy or exr, for a folder; client: a ``dask.distributed.Client``
+    (None: render here, frame after frame); progress: a tqdm bar of frames done and the
+    rate. Frames already in an output folder are kept, not rendered again (a video's
+    frames wait in a hidden folder beside it until it is assembled).
     """
+    if easing not in EASINGS:
+        raise DofsplatError(f"easing must be one of {', '.join(EASINGS)}, got {easing!r}")
+    if frame_format not in FRAME_FORMATS:
+        raise DofsplatError(f"frame_format must be one of {', '.join(FRAME_FORMATS)}, got "
+                            f"{frame_format!r}")
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise DofsplatError(f"fps must be a positive number, got {fps!r}")
     settings = settings or RenderSettings()
     specs = frame_specs(keyframes, n_frames, camera, lens, easing, surfels, settings)
     if output is None:
         if client is not None:
             futures = _submit(client, surfels, settings, specs)
-            return [f.result() for f in futures]
-        return [render_frame(surfels, s, settings) for s in _bar(specs, progress)]
+            try:
+                return [_named(f.result, s.index) for f, s in zip(futures, _bar(specs, progress))]
+            finally:
+                for f in futures:
+                    f.cancel()
+        return [_checked(render_frame, surfels, s, settings) for s in _bar(specs, progress)]
 
     output = Path(output)
     video = output.suffix.lower() in VIDEO_SUFFIXES
@@ -288,12 +318,17 @@ def _bar(items, progress, total=None):
 
 
 def _submit(client, surfels, settings, specs):
-    """One task per frame; the model scattered to every worker once. Each worker renders
-    with its machine's cores / the workers on that machine numba threads."""
+    """One task per frame; the model scattered to every worker once. A frame renders with
+    its machine's cores / the task threads of all the workers there numba threads, so
+    that the frames running at once on a machine share its cores (a ``dask worker`` runs
+    as many tasks at once as it has threads: its cores, by default)."""
     from collections import Counter
 
     workers = client.scheduler_info().get("workers", {})
-    per_host = dict(Counter(info.get("host") for info in workers.values()))
+    per_host = Counter()
+    for info in workers.values():
+        per_host[info.get("host")] += max(1, int(info.get("nthreads") or 1))
+    per_host = dict(per_host)
     model = client.scatter(surfels, broadcast=True)
     return [client.submit(_render_on_worker, model, s, settings, per_host, pure=False,
                           key=f"dofsplat-frame-{s.index}-{os.getpid()}-{id(specs)}")
@@ -301,15 +336,32 @@ def _submit(client, surfels, settings, specs):
 
 
 def _render_on_worker(surfels, spec, settings, per_host):
-    """``render_frame`` in a Dask worker, sharing its machine's cores with its neighbours."""
+    """``render_frame`` in a Dask worker, sharing its machine's cores with its neighbours
+    (``per_host``: host -> the task threads of the workers there)."""
     from distributed import get_worker
+    from distributed.comm import get_address_host
 
-    host = get_worker().address.split("://")[-1].rsplit(":", 1)[0]
+    host = get_address_host(get_worker().address)  # as the scheduler names it
     threads = max(1, (os.cpu_count() or 1) // max(1, per_host.get(host, 1)))
-    return render_frame(surfels, spec, settings, threads)
+    with _frame_lock():
+        return render_frame(surfels, spec, settings, threads)
 
 
-MANIFEST = ".dofsplat-sequence.json"
+_WORKQUEUE_LOCK = threading.Lock()
+
+
+def _frame_lock():
+    """Frames in one worker process run at once (one per task thread) under numba's tbb
+    and omp threading layers; its workqueue layer (where neither is installed) aborts the
+    process on concurrent parallel regions, so there they take turns. Until a frame has
+    run, the layer is not chosen yet: the first frames take turns too."""
+    import numba
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel region has run in this process yet
+        layer = None
+    return _WORKQUEUE_LOCK if layer in (None, "workqueue") else contextlib.nullcontext()
 
 
 def _claim(folder: Path, specs, settings, surfels, frame_format) -> None:
@@ -319,7 +371,8 @@ def _claim(folder: Path, specs, settings, surfels, frame_format) -> None:
     import hashlib
 
     digest = hashlib.sha256(repr((specs, settings, frame_format, len(surfels))).encode())
-    digest.update(np.ascontiguousarray(surfels.positions[:: max(1, len(surfels) // 4096)]).tobytes())
+    sample = surfels.positions[:: max(1, len(surfels) // 4096)]  # (<= ~4096, 3)
+    digest.update(np.ascontiguousarray(sample).tobytes())
     key = digest.hexdigest()[:20]
     path = Path(folder) / MANIFEST
     if path.exists():
@@ -356,7 +409,10 @@ def _render_into(folder, todo, total, surfels, settings, frame_format, client, p
                                                           settings), frame_format)
                 bar.update()
             return
+        if not todo:
+            return  # nothing to render: the model is not sent
         from dask.distributed import as_completed
+        from distributed.scheduler import KilledWorker
 
         futures = _submit(client, surfels, settings, todo)
         index = {f.key: s.index for f, s in zip(futures, todo)}
@@ -364,9 +420,10 @@ def _render_into(folder, todo, total, surfels, settings, frame_format, client, p
             for future in as_completed(futures):
                 k = index[future.key]
                 try:
-                    image = future.result()
-                except DofsplatError as e:
-                    raise DofsplatError(f"frame {k}: {e}") from None
+                    image = _named(future.result, k)
+                except KilledWorker:
+                    raise DofsplatError(f"frame {k}: the workers rendering it died (out of "
+                                        "memory? the workers' logs tell)") from None
                 _write_frame(folder, k, image, frame_format)
                 bar.update()
         finally:
@@ -377,10 +434,23 @@ def _render_into(folder, todo, total, surfels, settings, frame_format, client, p
 
 
 def _checked(fn, surfels, spec, settings):
+    return _named(lambda: fn(surfels, spec, settings), spec.index)
+
+
+def _named(call, index: int):
+    """``call()``, its failure naming frame ``index``: a DofsplatError (a user's mistake) and
+    running out of memory as one line; any other error (a bug) keeps its traceback, with
+    the frame added as a note."""
     try:
-        return fn(surfels, spec, settings)
+        return call()
     except DofsplatError as e:
-        raise DofsplatError(f"frame {spec.index}: {e}") from None
+        raise DofsplatError(f"frame {index}: {e}") from None
+    except MemoryError:
+        raise DofsplatError(f"frame {index}: out of memory") from None
+    except Exception as e:
+        if hasattr(e, "add_note"):  # Python >= 3.11
+            e.add_note(f"(dofsplat animate: while rendering frame {index})")
+        raise
 
 
 def _write_mp4(path, frames, fps):
@@ -395,23 +465,13 @@ def _write_mp4(path, frames, fps):
             if stream is None:
                 stream = box.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
                 # H.264 in yuv420p wants even sizes: the last row or column is repeated
-                stream.height, stream.width = rgb.shape[0] + rgb.shape[0] % 2, rgb.shape[1] + rgb.shape[1] % 2
+                height, width = rgb.shape[0] + rgb.shape[0] % 2, rgb.shape[1] + rgb.shape[1] % 2
+                stream.height, stream.width = height, width
                 stream.pix_fmt = "yuv420p"
                 stream.options = {"crf": "18"}
-            rgb = np.pad(rgb, ((0, rgb.shape[0] % 2), (0, rgb.shape[1] % 2), (0, 0)), mode="edge")
+            pad = ((0, height - rgb.shape[0]), (0, width - rgb.shape[1]), (0, 0))
+            rgb = np.pad(rgb, pad, mode="edge")
             for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
                 box.mux(packet)
         for packet in stream.encode():
             box.mux(packet)
-
-
-def load_keyframes(path) -> tuple[list[Keyframe], str]:
-    """``keyframes_from_json`` of a JSON file; DofsplatError if it cannot be read."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DofsplatError(f"no such keyframe file: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DofsplatError(f"{path}: not a readable JSON keyframe file ({e})") from None
-    return keyframes_from_json(data, str(path))

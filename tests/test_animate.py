@@ -155,12 +155,45 @@ def test_ctrl_c_leaves_whole_frames_and_no_video(tmp_path, capsys, monkeypatch):
     assert out.exists() and not waiting.exists()
 
 
+def test_a_failed_frame_is_named_and_stops_the_sequence(tmp_path, capsys, monkeypatch):
+    """Frame 1 fails: one line naming it, exit 2, frame 0 kept whole, no video."""
+    original = sequence.render_frame
+
+    def failing(s, spec, *a):
+        if spec.index == 1:
+            raise DofsplatError("the lens is on fire")
+        return original(s, spec, *a)
+
+    monkeypatch.setattr(sequence, "render_frame", failing)
+    out = tmp_path / "pull.mp4"
+    status, err = run(["animate", "--demo", "-o", out, "--frames", 3, "--size", f"{W}x{H}",
+                       "-q", "--focus-from", 1.5, "--focus-to", 4], capsys)
+    assert status == 2 and err == "dofsplat: error: frame 1: the lens is on fire\n"
+    assert not out.exists()
+    assert [p.name for p in (tmp_path / ".pull.mp4.frames").glob("frame_*")] == ["frame_0000.png"]
+
+
+def test_the_readme_keyframes_are_docs_moves_json():
+    """The README's keyframe example is docs/moves.json (which its command runs) and reads."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    shown = re.search(r"```json\n(.*?)```", (root / "README.md").read_text(), re.S).group(1)
+    assert json.loads(shown) == json.loads((root / "docs/moves.json").read_text())
+    keys, easing = sequence.load_keyframes(root / "docs/moves.json")
+    assert easing == "smooth" and [k.t for k in keys] == [0.0, 0.6, 1.0]
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--frames", "0"], "--frames must be at least 1"),
     (["--frames", "3", "-o", "x.avi"], "write a sequence as .mp4, .gif or a folder"),
     (["--frames", "3", "--focus-from", "2"], "go together"),
     (["--frames", "3", "--keyframes", "KEYS"], "keyframe 1 has no \"t\""),
     (["--frames", "3", "--keyframes", "BADFIELD"], "unknown field 'zoom'"),
+    (["--frames", "3", "--focus-at", "5", "5", "--focus-from", "2", "--focus-to", "3"],
+     "give it or --focus-from"),
+    (["--frames", "3", "--depth", "d.npy"], "describe one frame"),
 ])
 def test_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch, extra, message):
     monkeypatch.chdir(tmp_path)
@@ -191,14 +224,15 @@ def test_keyframe_focus_at_a_pixel(scene):
 
 def test_cli_on_an_existing_scheduler(tmp_path, capsys):
     """--scheduler ADDRESS sends the frames to a running cluster (here a LocalCluster's
-    scheduler): the frames are the in-process ones."""
+    scheduler, one worker with two task threads, as ``dask worker`` runs several frames at
+    once): the frames are the in-process ones."""
     pytest.importorskip("dask.distributed")
     from dask.distributed import LocalCluster
 
     argv = ["animate", "--demo", "--frames", 2, "--size", f"{W}x{H}", "--frame-format", "npy",
             "--focus-from", 1.5, "--focus-to", 4, "-q"]
     assert run(argv + ["-o", tmp_path / "here"], capsys)[0] == 0
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True,
                       dashboard_address=None) as cluster:
         assert run(argv + ["-o", tmp_path / "there", "--scheduler",
                            cluster.scheduler_address], capsys)[0] == 0

@@ -56,6 +56,7 @@ def project_root(tmp_path_factory):
     (base / "shared").symlink_to(SHARED_DATA.parent, target_is_directory=True)
     root = base / "project"
     root.mkdir()
+    (root / "docs").symlink_to(README.parent / "docs", target_is_directory=True)  # docs/moves.json
     g = (np.arange(48) + 0.5) / 48 * 2 - 1
     x, y = (a.ravel() for a in np.meshgrid(g, g))
     n = x.size

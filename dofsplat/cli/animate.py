@@ -144,6 +144,9 @@ def _check(args) -> None:
         if (getattr(args, a) is None) != (getattr(args, b) is None):
             raise DofsplatError(f"--{a.replace('_', '-')} and --{b.replace('_', '-')} go "
                                 "together")
+    if args.focus_at is not None and args.focus_from is not None:
+        raise DofsplatError("--focus-at focuses the first frame: give it or --focus-from, "
+                            "not both")
     if args.workers and args.scheduler:
         raise DofsplatError("give --workers (a local cluster) or --scheduler (an existing "
                             "one), not both")
@@ -151,6 +154,9 @@ def _check(args) -> None:
         raise DofsplatError("--no-dof has no lens to change: drop --focus-from/--aperture-from")
     if args.keyframes is not None and not Path(args.keyframes).is_file():
         raise DofsplatError(f"no such keyframe file: {args.keyframes}")
+    if args.depth is not None or args.stats is not None:
+        raise DofsplatError("--depth and --stats describe one frame: use 'dofsplat render' "
+                            "for them")
     if args.method != "ours":
         raise DofsplatError("animate renders with --method ours")
 
