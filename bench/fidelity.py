@@ -248,7 +248,7 @@ def reference_key(scene: FidelityScene, lens: ds.ThinLens, samples: int) -> str:
         digest.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
     # the settings a pinhole sample uses: not the LOD's nor the device's
     skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "show_lod", "device",
-            "max_tile_pairs"}
+            "max_tile_pairs", "lens_samples"}
     settings = {k: v for k, v in dataclasses.asdict(scene.settings).items() if k not in skip}
     meta = {"version": REFERENCE_VERSION, "scene": scene.name,
             "size": [scene.camera.width, scene.camera.height], "camera": repr(scene.camera),
@@ -487,6 +487,9 @@ def main(argv=None) -> int:
                                                f"{cache_folder()})")
     ap.add_argument("--no-cache", action="store_true", help="render every reference again "
                                                             "(and keep none)")
+    ap.add_argument("--lens-samples", type=int, default=1,
+                    help="ours (with and without LOD) draws the aperture as this many parts "
+                         "(RenderSettings.lens_samples; default 1, the single pass)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]
@@ -504,6 +507,7 @@ def main(argv=None) -> int:
         scene = SCENES[name](*size)
         if scene is None:
             continue
+        scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples)
         print(f"{name}: {len(scene.surfels):,} surfels, {size[0]}x{size[1]}, N = {samples}; "
               f"{scene.note}", file=sys.stderr)
         scene_rows, frames = measure_scene(scene, samples, repeat, TARGET_COC_PX, cache,
@@ -518,6 +522,7 @@ def main(argv=None) -> int:
               "samples": samples, "repeat": repeat, "targets_coc_px": list(TARGET_COC_PX),
               "tile": TILE, "worst_tile_percentile": WORST_TILE_PERCENTILE,
               "reference_version": REFERENCE_VERSION, "load_average": load,
+              "lens_samples": args.lens_samples,
               "run_s": time.perf_counter() - t_start, "scene_s": scene_s, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(_finite(record), indent=1, default=_json_number, allow_nan=False) + "\n"

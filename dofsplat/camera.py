@@ -337,3 +337,31 @@ def _positive(name, v) -> float:
     if not math.isfinite(v) or v <= 0:
         raise DofsplatError(f"{name} must be > 0, got {v:g}")
     return v
+
+
+# -- seen from a point of the lens (the reference's samples, the lens's parts) -----------
+
+
+def effective_diameter(camera: Camera, lens) -> float:
+    """The lens diameter A (world units) whose rim samples move points by the lens's C_r."""
+    if lens is None:
+        return 0.0
+    k, _ = lens.coc_coefficients(camera)
+    return 2.0 * k / camera.pixels_per_unit_at_unit_depth
+
+
+def lens_camera(camera: Camera, offset, focus_distance: float) -> Camera:
+    """The pinhole camera seen from lens point ``offset`` = (o_x, o_y) with the plane P fixed.
+
+    offset is in the lens plane, along the camera's right (x) and up (y) axes, world units.
+    The eye moves by the offset, the view direction stays, and the glFrustum window shifts by
+    -offset N/P so that points at depth P keep their pixel.
+    """
+    ox, oy = float(offset[0]), float(offset[1])
+    world_from_camera = np.linalg.inv(camera.camera_from_world())
+    shift = world_from_camera[:3, :3] @ np.array([ox, oy, 0.0])
+    left, right, bottom, top, near = camera.frustum_lrbtn()
+    dx, dy = ox * near / focus_distance, oy * near / focus_distance
+    return Camera(eye=tuple(np.add(camera.eye, shift)), target=tuple(np.add(camera.target, shift)),
+                  up=camera.up, width=camera.width, height=camera.height,
+                  frustum=(left - dx, right - dx, bottom - dy, top - dy, near))

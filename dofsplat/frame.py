@@ -19,6 +19,7 @@ from .surfels import Surfels
 
 DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
 RECONSTRUCTIONS = ("soft", "paper")
+MAX_LENS_SAMPLES = 64  # RenderSettings.lens_samples at most
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,7 @@ class RenderSettings:
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
+    lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
@@ -63,6 +65,10 @@ class RenderSettings:
         if self.reconstruction not in RECONSTRUCTIONS:
             raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
                                 f"got {self.reconstruction!r}")
+        if isinstance(self.lens_samples, bool) or not isinstance(self.lens_samples, (int, np.integer)) \
+                or not 1 <= self.lens_samples <= MAX_LENS_SAMPLES:
+            raise DofsplatError(f"lens_samples must be an integer in 1..{MAX_LENS_SAMPLES}, "
+                                f"got {self.lens_samples!r}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
         if self.device not in DEVICES:
@@ -128,6 +134,41 @@ def coc_coefficients(camera: Camera, lens, settings: RenderSettings) -> tuple[fl
     if lens is None or not settings.dof:
         return 0.0, 0.0
     return lens.coc_coefficients(camera)
+
+
+@dataclass(frozen=True)
+class LensParts:
+    """The lens cut into parts for one frame (``splat/subaperture.py``)."""
+
+    offsets: np.ndarray  # (K, 2) the parts' centroids, in aperture radii (x right, y up)
+    cameras: tuple  # K ``Camera``s: the frame seen from each centroid (camera.lens_camera)
+    rho: float  # the residual aperture's scale
+    residual: object  # a ``ResidualLens``: the blur each part draws
+
+
+def lens_parts(camera: Camera, lens, settings: RenderSettings) -> LensParts | None:
+    """The lens's parts, or None when the frame is one pass: a pinhole, ``dof`` off,
+    ``lens_samples`` 1 or ``show_lod``."""
+    from .camera import effective_diameter, lens_camera
+    from .splat.subaperture import ResidualLens, aperture_second_moment, subaperture_pattern
+
+    if lens is None or not settings.dof or settings.show_lod or settings.lens_samples == 1:
+        return None
+    diameter = effective_diameter(camera, lens)
+    if diameter <= 0.0:
+        return None
+    m2 = aperture_second_moment(getattr(lens, "bokeh", "gaussian"), getattr(lens, "blades", 0))
+    offsets, rho = subaperture_pattern(settings.lens_samples, m2)
+    cameras = tuple(lens_camera(camera, 0.5 * diameter * u, float(lens.focus_distance))
+                    for u in offsets)
+    return LensParts(offsets, cameras, rho, ResidualLens(lens, rho))
+
+
+def lod_kappa(settings: RenderSettings, parts: LensParts | None = None) -> float:
+    """The LOD cut's DOF stop: a node is drawn when its filter is at most this x the DOF
+    blur's variance (``lod_blur_fraction``); with the lens in parts the blur is the
+    residual's, rho^2 x the whole lens's variance."""
+    return settings.lod_blur_fraction * (1.0 if parts is None else parts.rho ** 2)
 
 
 def aperture_shape(lens, settings: RenderSettings):

@@ -88,14 +88,18 @@ def _assert_same_frame(cpu, gpu):
 
 @needs_cuda
 @pytest.mark.parametrize("lod", [False, True], ids=["full", "lod"])
-@pytest.mark.parametrize("aperture", APERTURES)
-def test_frame_matches_cpu(scene, aperture, lod):
+@pytest.mark.parametrize("aperture, parts", [(0.0, 4), (0.5, 4), (2.0, 4), (2.0, 1)],
+                         ids=["pinhole", "A0.5", "A2", "A2-one-pass"])
+def test_frame_matches_cpu(scene, aperture, parts, lod):
+    """Whole frames: the lens in parts (the default, each part from its own camera) and in
+    one pass."""
     surfels, camera = scene
-    settings = ds.RenderSettings(lod=lod)
+    settings = ds.RenderSettings(lod=lod, lens_samples=parts)
     cpu = ds.render(surfels, camera, _lens(aperture), settings)
     gpu = ds.render(surfels, camera, _lens(aperture), replace(settings, device="cuda"))
     assert gpu.stats["device"] == "cuda"
-    if lod and aperture == APERTURES[-1]:
+    assert gpu.stats["lens_samples"] == cpu.stats["lens_samples"] == (parts if aperture else 1)
+    if lod and aperture == APERTURES[-1] and parts == 1:
         assert cpu.stats["splats_selected"] < len(surfels)  # the cut has inner nodes
     _assert_same_frame(cpu, gpu)
 

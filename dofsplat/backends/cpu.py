@@ -19,7 +19,7 @@ import numpy as np
 
 from ..camera import Camera, ThinLens
 from ..frame import (RenderResult, RenderSettings, aperture_shape, coc_coefficients,
-                     kernel_floor, lod_level_colors, lod_tree, merge_parameters)
+                     kernel_floor, lod_kappa, lod_level_colors, lod_tree, merge_parameters)
 from ..surfels import Surfels
 
 
@@ -29,39 +29,31 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     warm_up()
     times = {}
     t_start = time.perf_counter()
+    blur_lens = None if settings.show_lod else lens
+    parts = lens_parts(camera, blur_lens, settings)
 
     t = time.perf_counter()
-    source = select(surfels, camera, lens, settings, hierarchy)
+    source = select(surfels, camera, lens, settings, hierarchy, parts)
     times["select_ms"] = _ms(t)
 
     t = time.perf_counter()
     rgb = shade_surfels(source, camera, settings)
     times["shade_ms"] = _ms(t)
 
-    t = time.perf_counter()
-    blur_lens = None if settings.show_lod else lens
-    splats, bbox, visible = project(source, rgb, camera, blur_lens, settings,
-                                    workspace=_workspace())
-    times["project_ms"] = _ms(t)
-
-    t = time.perf_counter()
-    bands = plan_bands(bbox, visible, camera, settings)
-    times["bin_ms"] = _ms(t)
-
-    merge = merge_parameters(camera, blur_lens, settings)
-    image, depth, weight, raster_stats = rasterize(splats, bbox, visible, bands, camera, settings,
-                                                   merge, blur_lens)
-    times["bin_ms"] += raster_stats.pop("bin_ms")
-    times["raster_ms"] = raster_stats.pop("raster_ms")
-    times["front_ms"] = raster_stats.pop("front_ms")
+    if parts is None:
+        image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings)
+    else:
+        image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings)
+    for stage in ("project_ms", "bin_ms", "front_ms", "raster_ms"):
+        times[stage] = frame_stats.pop(stage)
     times["total_ms"] = _ms(t_start)
 
     stats = {
         "points_in": int(len(surfels)),
         "lod": bool(settings.lod),
+        "lens_samples": 1 if parts is None else len(parts.offsets),
         "splats_selected": int(source.size),
-        "splats_rendered": int(np.count_nonzero(visible)),
-        **raster_stats,
+        **frame_stats,
         "width": camera.width,
         "height": camera.height,
         **times,
@@ -69,12 +61,60 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     return RenderResult(image=image, depth=depth, weight=weight, stats=stats)
 
 
+def draw(source, rgb, camera: Camera, lens, settings: RenderSettings):
+    """Project, bin and rasterise one view of the splats: (image, depth, weight, stats)."""
+    t = time.perf_counter()
+    splats, bbox, visible = project(source, rgb, camera, lens, settings, workspace=_workspace())
+    project_ms = _ms(t)
+    t = time.perf_counter()
+    bands = plan_bands(bbox, visible, camera, settings)
+    bin_ms = _ms(t)
+    image, depth, weight, stats = rasterize(splats, bbox, visible, bands, camera, settings,
+                                            merge_parameters(camera, lens, settings), lens)
+    stats["splats_rendered"] = int(np.count_nonzero(visible))
+    stats["project_ms"] = project_ms
+    stats["bin_ms"] += bin_ms
+    return image, depth, weight, stats
+
+
+def draw_parts(source, rgb, parts, settings: RenderSettings):
+    """The lens's parts (``splat/subaperture.py``), each ``draw``n from its own camera with
+    the residual blur, averaged: (image, depth, weight, stats summed over the parts;
+    splats_rendered is the mean per part). depth is the nearest any part saw, as the
+    reference's."""
+    cam = parts.cameras[0]
+    image = np.zeros((cam.height, cam.width, 4), np.float32)
+    depth = np.full((cam.height, cam.width), np.inf, np.float32)
+    weight = np.zeros((cam.height, cam.width), np.float32)
+    total: dict = {}
+    share = np.float32(1.0 / len(parts.cameras))
+    for part_camera in parts.cameras:
+        im, dp, wt, stats = draw(source, rgb, part_camera, parts.residual, settings)
+        image += im * share  # float32 sums of K <= 64 frames: rounding far below 1/255
+        weight += wt * share
+        np.minimum(depth, dp, out=depth)
+        for key, value in stats.items():
+            total[key] = total.get(key, 0) + value
+    total["splats_rendered"] = int(round(total["splats_rendered"] / len(parts.cameras)))
+    return image, depth, weight, total
+
+
+def lens_parts(camera: Camera, lens, settings: RenderSettings):
+    """The lens's parts for this frame (``frame.lens_parts``), or None for one pass."""
+    from ..frame import lens_parts as parts_for
+
+    return parts_for(camera, lens, settings)
+
 
 # -- stages ------------------------------------------------------------------------------
 
 
-def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hierarchy=None):
-    """What to splat: every surfel, or this frame's LOD cut (Section 6.2). A ``SplatSource``."""
+def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hierarchy=None,
+           parts=None):
+    """What to splat: every surfel, or this frame's LOD cut (Section 6.2). A ``SplatSource``.
+
+    parts: the lens's parts (``frame.lens_parts``): nodes are then chosen by the residual
+    blur, which each part draws (the frustum still widened by the whole lens's)."""
     from ..splat.source import from_surfels
 
     if not settings.lod:
@@ -83,9 +123,10 @@ def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hie
 
     tree = lod_tree(surfels, hierarchy)
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    # the DOF stop compares variances: the residual's is rho^2 the whole lens's
+    kappa = settings.lod_blur_fraction * (1.0 if parts is None else parts.rho ** 2)
     source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
-                           settings.lod_pixel_threshold, settings.cull_backfaces,
-                           settings.lod_blur_fraction)
+                           settings.lod_pixel_threshold, settings.cull_backfaces, kappa)
     if settings.show_lod:
         source = source._replace(colors=lod_level_colors(source.level))
     return source
@@ -105,13 +146,16 @@ def shade_surfels(source, camera: Camera, settings: RenderSettings) -> np.ndarra
 
 
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
-            lod_cov: np.ndarray | None = None, workspace: dict | None = None):
+            lod_cov: np.ndarray | None = None, workspace: dict | None = None, margin: int = 0):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
 
     source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
     ``lod_cov`` (N, 6), if given, is the LOD filter's world covariance per surfel);
     workspace: a dict whose arrays the splats may reuse (``render`` keeps one per thread),
-    else they are new
+    else they are new;
+    margin: project into an image this many pixels wider on every side (screen positions
+    and boxes move by it): splats just outside the frame are kept, for the lens's parts to
+    move into it (``rasterize_parts``)
     """
     from ..splat.project import N_FIELDS, project_splats
     from ..splat.source import from_surfels
@@ -124,6 +168,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     tangents, ru, rv, area = source.tangents, source.ru, source.rv, source.area
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     ax, bx, ay, by = camera.screen_coefficients()
+    bx, by = bx + margin, by + margin  # whole pixels: the pixel sums do not change
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
@@ -132,7 +177,8 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     disc, blades, _, moments = aperture_shape(lens, settings)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
                    np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
-                   ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
+                   ax, bx, ay, by, near, camera.width + 2 * margin, camera.height + 2 * margin,
+                   coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
                    kernel_floor(settings), disc, blades, moments, splats, bbox, visible)

@@ -119,6 +119,17 @@ def probe_kernel(out):
 
 
 @cuda.jit
+def _accumulate(image, depth, weight, part_image, part_depth, part_weight, share):
+    """One lens part's frame into the frame: image and weight by its share, depth the nearest."""
+    i = cuda.grid(1)
+    if i < depth.shape[0]:
+        for c in range(4):
+            image[i, c] += share * part_image[i, c]
+        weight[i] += share * part_weight[i]
+        depth[i] = min(depth[i], part_depth[i])
+
+
+@cuda.jit
 def _fill(a, value):
     i = cuda.grid(1)
     if i < a.shape[0]:
@@ -511,9 +522,11 @@ def device_scene(surfels, tree=None) -> DeviceScene:
 # -- host side: the stages -------------------------------------------------------------------
 
 
-def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> SplatSource:
-    """This frame's splats on the GPU: every surfel, or the LOD cut (backends.cpu.select's twin)."""
-    from ..frame import LOD_PALETTE, coc_coefficients
+def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
+                parts=None) -> SplatSource:
+    """This frame's splats on the GPU: every surfel, or the LOD cut (backends.cpu.select's
+    twin; parts: the lens's parts, whose residual blur chooses the cut)."""
+    from ..frame import LOD_PALETTE, coc_coefficients, lod_kappa
 
     if not settings.lod:
         return scene.source
@@ -542,7 +555,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings) -> Sp
             d["center"], d["bound"], d["extent"], d["position"], d["normal"], d["cone"],
             d["sigma_r2"], d["lod_cov"], view, ax, bx, ay, by, near, camera.width, camera.height,
             float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
-            float(settings.lod_blur_fraction), bool(settings.cull_backfaces))
+            float(lod_kappa(settings, parts)), bool(settings.cull_backfaces))
 
     # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
     position = _WS.get("lod.position", (n_nodes + 1,), np.int64)
@@ -739,41 +752,73 @@ class _Clock:
 
 def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame:
     """``render``'s pipeline on the GPU, the result left there (for timings and viewers)."""
-    from ..frame import lod_tree, merge_parameters
+    from ..frame import lens_parts, lod_tree
 
     tree = lod_tree(surfels, hierarchy) if settings.lod else None
     scene = device_scene(surfels, tree)
+    blur_lens = None if settings.show_lod else lens
+    parts = lens_parts(camera, blur_lens, settings)
     clock = _Clock()
     clock.mark("start")
-    source = select_cuda(surfels, scene, tree, camera, lens, settings)
+    source = select_cuda(surfels, scene, tree, camera, lens, settings, parts)
     clock.mark("select_ms")
     rgb = shade_cuda(source, camera, settings)
     clock.mark("shade_ms")
-    blur_lens = None if settings.show_lod else lens
-    splats, bbox, visible = project_cuda(source, rgb, camera, blur_lens, settings)
-    clock.mark("project_ms")
-    offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
-    clock.mark("bin_ms")
-    merge = merge_parameters(camera, blur_lens, settings)
-    image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, visible, offsets, ids, camera,
-                                                      settings, merge, blur_lens)
-    clock.mark("raster_ms")
-    frags, overflows = tile_stats.copy_to_host().sum(axis=0)
+    if parts is None:
+        image, depth, weight, counts = _draw(source, rgb, camera, blur_lens, settings, clock)
+    else:
+        # the lens's parts (splat/subaperture.py), each from its own camera, averaged
+        h, w = camera.height, camera.width
+        image = _WS.get("parts.image", (h, w, 4), np.float32)
+        depth = _WS.get("parts.depth", (h, w), np.float32)
+        weight = _WS.get("parts.weight", (h, w), np.float32)
+        _fill[_blocks(h * w * 4), THREADS](image.reshape(h * w * 4), 0.0)
+        _fill[_blocks(h * w), THREADS](depth.reshape(h * w), np.inf)
+        _fill[_blocks(h * w), THREADS](weight.reshape(h * w), 0.0)
+        counts = np.zeros(4, np.int64)
+        share = 1.0 / len(parts.cameras)
+        for part_camera in parts.cameras:
+            im, dp, wt, c = _draw(source, rgb, part_camera, parts.residual, settings, clock)
+            _accumulate[_blocks(h * w), THREADS](image.reshape(h * w, 4), depth.reshape(h * w),
+                                                 weight.reshape(h * w), im.reshape(h * w, 4),
+                                                 dp.reshape(h * w), wt.reshape(h * w), share)
+            clock.mark("raster_ms")
+            counts += c
+        counts[0] = round(counts[0] / len(parts.cameras))
     stats = {
         "device": "cuda",
         "points_in": int(len(surfels)),
         "lod": bool(settings.lod),
+        "lens_samples": 1 if parts is None else len(parts.cameras),
         "splats_selected": int(source.size),
-        "splats_rendered": int(n_visible),
-        "fragments": int(frags),
-        "abuffer_overflows": int(overflows),
-        "tile_pairs": int(ids.shape[0]),
+        "splats_rendered": int(counts[0]),
+        "fragments": int(counts[1]),
+        "abuffer_overflows": int(counts[2]),
+        "tile_pairs": int(counts[3]),
         "bands": 1,
         "width": camera.width,
         "height": camera.height,
         **clock.stages_ms(),
     }
     return DeviceFrame(image=image, depth=depth, weight=weight, stats=stats)
+
+
+def _draw(source, rgb, camera, lens, settings, clock):
+    """Project, bin and rasterise one view (``backends.cpu.draw``'s twin): image, depth,
+    weight (device buffers that the next view overwrites) and (splats rendered, fragments,
+    overflows, tile pairs)."""
+    from ..frame import merge_parameters
+
+    splats, bbox, visible = project_cuda(source, rgb, camera, lens, settings)
+    clock.mark("project_ms")
+    offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
+    clock.mark("bin_ms")
+    merge = merge_parameters(camera, lens, settings)
+    image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, visible, offsets, ids, camera,
+                                                      settings, merge, lens)
+    clock.mark("raster_ms")
+    frags, overflows = tile_stats.copy_to_host().sum(axis=0)
+    return image, depth, weight, np.array([n_visible, frags, overflows, ids.shape[0]], np.int64)
 
 
 def render_cuda(surfels, camera, lens, settings, hierarchy=None):

@@ -165,7 +165,8 @@ def settings_from_args(args):
                           lod_blur_fraction=args.lod_blur_fraction, show_lod=args.show_lod,
                           device=getattr(args, "device", "cpu"),
                           reconstruction=getattr(args, "reconstruction", "soft"),
-                          taper=getattr(args, "taper", False))
+                          taper=getattr(args, "taper", False),
+                          lens_samples=getattr(args, "lens_samples", 1))
 
 
 def check_arguments(args) -> None:
@@ -255,7 +256,7 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "lod": settings.lod, "lod_pixel_threshold": settings.lod_pixel_threshold,
         "lod_blur_fraction": settings.lod_blur_fraction, "show_lod": settings.show_lod,
         "device": settings.device, "reconstruction": settings.reconstruction,
-        "taper": settings.taper,
+        "taper": settings.taper, "lens_samples": settings.lens_samples,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}
