@@ -274,8 +274,8 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                    help="draw the aperture as K parts (1-64), each a frame seen from its own "
                         "point of the lens with the rest of the blur, averaged: where blurred "
                         "surfaces touch or overlap, visibility is decided K times over a "
-                        "smaller blur (4: 4-9 dB closer to the reference on the fidelity "
-                        "suite, for about 4x the time). An isolated bright point then shows "
+                        "smaller blur (4: 2.5-9 dB closer to the reference on the fidelity "
+                        "suite, for about K times the work). An isolated bright point then shows "
                         "K lobes instead of the aperture's disc or polygon, so the default "
                         "is 1, the paper's single pass (docs/maths.md, \"Lens samples\")")
     lod = p.add_argument_group(
