@@ -70,6 +70,7 @@ def record(path: Path) -> None:
         for settings in (ds.RenderSettings(lod=False), ds.RenderSettings(show_lod=True),
                          ds.RenderSettings(shading="none")):
             bc.render_frame(model, camera, lens, settings)
+    bc.render_frame(disks, camera, lens, ds.RenderSettings(lens_samples=4))  # _accumulate
     x = np.arange(3000, dtype=np.uint8)  # a scan deep enough for _scan_add
     bc.exclusive_scan(bc._upload(x), x.size, bc.cuda.device_array(x.size + 1, np.int64))
     with open(path, "wb") as f:
