@@ -19,7 +19,8 @@ import numpy as np
 
 from ..camera import Camera, ThinLens
 from ..frame import (RenderResult, RenderSettings, aperture_shape, coc_coefficients,
-                     kernel_floor, lod_kappa, lod_level_colors, lod_tree, merge_parameters)
+                     kernel_floor, lens_parts, lod_kappa, lod_level_colors, lod_tree,
+                     merge_parameters)
 from ..surfels import Surfels
 
 
@@ -99,13 +100,6 @@ def draw_parts(source, rgb, parts, settings: RenderSettings):
     return image, depth, weight, total
 
 
-def lens_parts(camera: Camera, lens, settings: RenderSettings):
-    """The lens's parts for this frame (``frame.lens_parts``), or None for one pass."""
-    from ..frame import lens_parts as parts_for
-
-    return parts_for(camera, lens, settings)
-
-
 # -- stages ------------------------------------------------------------------------------
 
 
@@ -123,10 +117,9 @@ def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hie
 
     tree = lod_tree(surfels, hierarchy)
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
-    # the DOF stop compares variances: the residual's is rho^2 the whole lens's
-    kappa = settings.lod_blur_fraction * (1.0 if parts is None else parts.rho ** 2)
     source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
-                           settings.lod_pixel_threshold, settings.cull_backfaces, kappa)
+                           settings.lod_pixel_threshold, settings.cull_backfaces,
+                           lod_kappa(settings, parts))
     if settings.show_lod:
         source = source._replace(colors=lod_level_colors(source.level))
     return source
@@ -146,16 +139,13 @@ def shade_surfels(source, camera: Camera, settings: RenderSettings) -> np.ndarra
 
 
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
-            lod_cov: np.ndarray | None = None, workspace: dict | None = None, margin: int = 0):
+            lod_cov: np.ndarray | None = None, workspace: dict | None = None):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
 
     source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
     ``lod_cov`` (N, 6), if given, is the LOD filter's world covariance per surfel);
     workspace: a dict whose arrays the splats may reuse (``render`` keeps one per thread),
-    else they are new;
-    margin: project into an image this many pixels wider on every side (screen positions
-    and boxes move by it): splats just outside the frame are kept, for the lens's parts to
-    move into it (``rasterize_parts``)
+    else they are new
     """
     from ..splat.project import N_FIELDS, project_splats
     from ..splat.source import from_surfels
@@ -168,7 +158,6 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     tangents, ru, rv, area = source.tangents, source.ru, source.rv, source.area
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     ax, bx, ay, by = camera.screen_coefficients()
-    bx, by = bx + margin, by + margin  # whole pixels: the pixel sums do not change
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
@@ -177,8 +166,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     disc, blades, _, moments = aperture_shape(lens, settings)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
                    np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
-                   ax, bx, ay, by, near, camera.width + 2 * margin, camera.height + 2 * margin,
-                   coc_k, inv_focus,
+                   ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
                    kernel_floor(settings), disc, blades, moments, splats, bbox, visible)

@@ -277,7 +277,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "smaller blur (4: 2.5-9 dB closer to the reference on the fidelity "
                         "suite, for about K times the work). An isolated bright point then shows "
                         "K lobes instead of the aperture's disc or polygon, so the default "
-                        "is 1, the paper's single pass (docs/maths.md, \"Lens samples\")")
+                        "is 1, the paper's single pass (docs/maths.md, \"the lens in parts\")")
     lod = p.add_argument_group(
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "

@@ -1,4 +1,4 @@
-"""Sub-aperture decomposition of the lens (beyond the paper; docs/maths.md, "Lens samples").
+"""Sub-aperture decomposition of the lens (beyond the paper; docs/maths.md, "the lens in parts").
 
 The paper blurs every splat by the whole aperture and resolves visibility once per pixel in
 the A-buffer, whose z-ranges then hold the depths of everything within a circle of
