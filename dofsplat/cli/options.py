@@ -13,6 +13,7 @@ import re
 from pathlib import Path
 
 from ..errors import DofsplatError
+from ..frame import RenderSettings
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # argparse's status for a usage error; every user mistake gets it
@@ -291,11 +292,12 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="also draw a node whole when its disk projects to at most PX "
                           "pixels in radius, as QSplat does (default: 1; 0 keeps every "
                           "surfel that the blur does not merge)")
-    lod.add_argument("--lod-blur-fraction", metavar="K", type=fraction, default=1.0,
+    lod.add_argument("--lod-blur-fraction", metavar="K", type=fraction,
+                     default=RenderSettings.lod_blur_fraction,
                      help="draw a node when its own blur is at most K times the depth-of-"
-                          "field blur (variance): 1 (default) is the paper's rule; 0.5 goes "
-                          "one level finer, closer to the exact picture, for ~1.5x the "
-                          "fragments")
+                          "field blur (variance): 0.35 (default) keeps textures and contacts "
+                          "within ~1-2 dB of every surfel for under 2x a pinhole frame "
+                          "(bench/fidelity.py); 1 is the paper's rule, faster and softer")
     lod.add_argument("--show-lod", action="store_true",
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
