@@ -207,6 +207,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
     merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K = 0: the paper's "over");
     blades: (N, 2) edge normals of a polygonal aperture (None: round).
     """
+    from .raster.abuffer import OPAQUE
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX,
                                 MY, RAD, REACH, RED, ZHI, ZLO)
 
@@ -236,7 +237,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
         for i, j in zip(*np.nonzero(kern > 0 if s[RAD] != 0 else kern >= 0)):
             w = s[AMP] * kern[i, j]
             frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
-                    s[ZLO], s[ZHI]]
+                    w if s[ALPHA] >= OPAQUE else 0.0, s[ZLO], s[ZHI]]
             _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
             fragments += 1
     image = np.zeros((height, width, 4))
@@ -381,21 +382,28 @@ def visibility_reference(s, front, merge, width):
     return 1 - removed / VIS_SAMPLES
 
 
+# a surface: [w, wr, wg, wb, wa, wd, w of opaque fragments, z_lo, z_hi]
 def _overlaps(a, b):
-    return a[6] <= b[7] and a[7] >= b[6]
+    return a[7] <= b[8] and a[8] >= b[7]
 
 
 def _add(dst, src):
-    for f in range(6):
+    for f in range(7):
         dst[f] += src[f]
-    dst[6] = min(dst[6], src[6])
-    dst[7] = max(dst[7], src[7])
+    dst[7] = min(dst[7], src[7])
+    dst[8] = max(dst[8], src[8])
+
+
+def _alpha(s):
+    """A surface's opacity (abuffer.layer_alpha): min(1, w) x mean opacity, at least the
+    coverage of its opaque fragments."""
+    return max(min(1.0, s[0]) * s[4] / s[0], min(1.0, s[6]))
 
 
 def _insert(surfaces, frag, max_surfaces):
     hit = next((i for i, s in enumerate(surfaces) if _overlaps(frag, s)), None)
     if hit is None and len(surfaces) == max_surfaces:
-        gaps = [max(s[6] - frag[7], frag[6] - s[7]) for s in surfaces]
+        gaps = [max(s[7] - frag[8], frag[7] - s[8]) for s in surfaces]
         hit = int(np.argmin(gaps))
     if hit is None:
         surfaces.append(list(frag))
@@ -422,7 +430,7 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
     import itertools
 
     def mean_depth(s):
-        return s[5] / s[0] if s[0] > 0 else 0.5 * (s[6] + s[7])
+        return s[5] / s[0] if s[0] > 0 else 0.5 * (s[7] + s[8])
 
     order = sorted(range(len(surfaces)), key=lambda i: (mean_depth(surfaces[i]), i))
     ss = [surfaces[i] for i in order]
@@ -439,13 +447,13 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
         runs, start = [], 0
         for t in range(n):
             if t == n - 1 or cuts[t]:
-                runs.append(np.sum([ss[u][:6] for u in range(start, t + 1)], axis=0))
+                runs.append(np.sum([ss[u][:7] for u in range(start, t + 1)], axis=0))
                 start = t + 1
         c, tr = np.zeros(3), 1.0
         for run in runs:
             if run[0] <= 0:
                 continue
-            alpha = min(1.0, run[0]) * run[4] / run[0]
+            alpha = _alpha(run)
             c += tr * alpha * run[1:4] / run[0]
             tr *= 1 - alpha
         rgb += prob * c
@@ -457,7 +465,7 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
     for s in ss:
         if s[0] <= 0:
             continue
-        alpha = min(1.0, s[0]) * s[4] / s[0]
+        alpha = _alpha(s)
         if tr * alpha > best:
             best, best_depth = tr * alpha, mean_depth(s)
         tr *= 1 - alpha

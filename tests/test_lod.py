@@ -344,8 +344,8 @@ def test_flat_node_seen_face_on_has_a_finite_z_range():
 
 
 def test_a_full_abuffer_never_writes_past_its_last_slot():
-    from dofsplat.raster.abuffer import MAX_SURFACES, insert_fragment
-    acc = np.zeros((2, MAX_SURFACES, 8), np.float64)
+    from dofsplat.raster.abuffer import MAX_SURFACES, N_ACC, insert_fragment
+    acc = np.zeros((2, MAX_SURFACES, N_ACC), np.float64)
     cnt = np.zeros(2, np.int64)
     for i in range(MAX_SURFACES):  # fill pixel 0 with separate surfaces
         insert_fragment(acc, cnt, 0, 1.0, 0.5, 0.5, 0.5, 1.0, float(i), float(i), i + 0.5)

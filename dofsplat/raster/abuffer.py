@@ -30,8 +30,8 @@ from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F
 TILE = ROW  # 16: the aperture kernel's SIMD rows (splat/bokeh.py) are a tile wide
 MAX_SURFACES = 8
 # per-surface accumulators in the tile A-buffer
-S_W, S_WR, S_WG, S_WB, S_WA, S_WD, S_ZLO, S_ZHI = range(8)
-N_ACC = 8
+S_W, S_WR, S_WG, S_WB, S_WA, S_WD, S_WO, S_ZLO, S_ZHI = range(9)
+N_ACC = 9
 # scratch floats that resolve_pixel needs: sort keys, merge fractions, the composite table
 RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
 
@@ -133,6 +133,7 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
         acc[p, n, S_WB] = w * b
         acc[p, n, S_WA] = w * a
         acc[p, n, S_WD] = w * d
+        acc[p, n, S_WO] = w if a >= OPAQUE else 0.0
         acc[p, n, S_ZLO] = zlo
         acc[p, n, S_ZHI] = zhi
         cnt[p] = n + 1
@@ -143,6 +144,8 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     acc[p, hit, S_WB] += w * b
     acc[p, hit, S_WA] += w * a
     acc[p, hit, S_WD] += w * d
+    if a >= OPAQUE:
+        acc[p, hit, S_WO] += w
     acc[p, hit, S_ZLO] = min(acc[p, hit, S_ZLO], zlo)
     acc[p, hit, S_ZHI] = max(acc[p, hit, S_ZHI], zhi)
     # the united range may now reach other surfaces: they are the same surface
@@ -157,6 +160,15 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
             continue
         j += 1
     return overflow
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def layer_alpha(w, wa, wo):
+    """A surface's opacity from its sums of weights w, weighted opacities wa and weights of
+    opaque fragments wo: the paper's min(1, w) x wa / w, and at least min(1, wo), the
+    coverage of its opaque fragments (a translucent surface merged with an opaque one
+    where they touch does not let the background through)."""
+    return max(min(1.0, w) * wa / w, min(1.0, wo))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -330,7 +342,7 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
     scratch[f0 + 4 * n + 3] = 1.0
     for a in range(n - 1, -1, -1):
         prob = 1.0
-        sw = sr = sg = sb = sa = 0.0
+        sw = sr = sg = sb = sa = so = 0.0
         fr = fg = fb = ft = 0.0
         for b in range(a, n):
             i = order[b]
@@ -339,12 +351,13 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
             sg += acc[p, i, S_WG]
             sb += acc[p, i, S_WB]
             sa += acc[p, i, S_WA]
+            so += acc[p, i, S_WO]
             end = prob * (1.0 - scratch[ns + b]) if b < n - 1 else prob
             if end > 0.0:
                 alpha = 0.0
                 cr = cg = cb = 0.0
                 if sw > 0.0:
-                    alpha = min(1.0, sw) * sa / sw
+                    alpha = layer_alpha(sw, sa, so)
                     cr, cg, cb = alpha * sr / sw, alpha * sg / sw, alpha * sb / sw
                 nxt = f0 + 4 * (b + 1)
                 fr += end * (cr + (1.0 - alpha) * scratch[nxt])
@@ -368,7 +381,7 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
         w = acc[p, i, S_W]
         if w <= 0.0:
             continue
-        alpha = min(1.0, w) * acc[p, i, S_WA] / w
+        alpha = layer_alpha(w, acc[p, i, S_WA], acc[p, i, S_WO])
         if trans * alpha > best:
             best = trans * alpha
             best_depth = scratch[m]
