@@ -6,12 +6,14 @@ tile's list in increasing splat index. Each tile is then rasterised by one threa
 small A-buffer of its own that holds up to MAX_SURFACES surfaces per pixel:
 
 * a fragment (weight w, colour, opacity, depth, z-range) whose z-range overlaps a surface
-  of the pixel merges into it: weights, weighted colours, weighted opacities and weighted
-  depths add, the ranges unite, and surfaces that the united range now overlaps merge too;
+  of the pixel merges into it: weights, weighted colours, weighted opacities, weighted
+  depths and the weights of opaque fragments add, the ranges unite, and surfaces that the
+  united range now overlaps merge too;
 * otherwise it starts a new surface; when all MAX_SURFACES are taken it merges into the one
   whose z-range is nearest (a documented approximation; counted in the stats);
 * resolve: surfaces front to back by their mean depth, each with colour sum(wc)/sum(w) and
-  alpha min(1, sum(w)) x sum(w alpha)/sum(w), composited with "over", background last.
+  alpha min(1, sum(w)) x sum(w alpha)/sum(w), at least min(1, sum(w) of its opaque
+  fragments) (``layer_alpha``), composited with "over", background last.
 
 Fragments reach a pixel in splat-index order whatever the thread count, so the image does
 not depend on the number of threads.
@@ -410,7 +412,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     round_aperture = blades.shape[0] == 0
     flat = table.reshape(-1)
     # each thread's tile buffers, allocated once per band, not once per tile: a tile's
-    # A-buffer is 128 KiB, past malloc's mmap threshold, and a fresh mapping per tile (its
+    # A-buffer is 144 KiB, past malloc's mmap threshold, and a fresh mapping per tile (its
     # page faults) cost 30 ms of a 1280 x 720 frame with nothing in it (bench/RESULTS.md)
     pool = numba.config.NUMBA_NUM_THREADS
     accs = np.empty((pool, TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
