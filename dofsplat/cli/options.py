@@ -296,8 +296,9 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      default=RenderSettings.lod_blur_fraction,
                      help="draw a node when its own blur is at most K times the depth-of-"
                           "field blur (variance): 0.35 (default) keeps textures and contacts "
-                          "within ~1-2 dB of every surfel for under 2x a pinhole frame "
-                          "(bench/fidelity.py); 1 is the paper's rule, faster and softer")
+                          "close to the exact picture (0-5 dB from --no-lod on the fidelity "
+                          "suite, 0.5-10 dB at 1) for 1.4-2.8x a pinhole frame at a 40-pixel "
+                          "blur; 1 is the paper's rule, faster and softer")
     lod.add_argument("--show-lod", action="store_true",
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
