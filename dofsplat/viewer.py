@@ -6,7 +6,8 @@ page's background image, with its depth so that viser's own overlays sit in it. 
 browser tab (a viser client) has its own controls and one render thread:
 
 * while the camera moves, frames are rendered at a quarter of the resolution (and the LOD
-  cut that goes with it); when it has been still for ``SETTLE_S`` the full-resolution
+  cut that goes with it, at the paper's coarser stop, ``MOVING_LOD_BLUR_FRACTION``); when
+  it has been still for ``SETTLE_S`` the full-resolution
   frame follows (``Refinement``); only the latest camera is ever rendered, never a queue;
 * a click on the model sets "Focus distance" to the depth seen under the cursor in the last
   frame (``depth_at``), eased over ``FOCUS_PULL_S`` like a focus pull (``FocusPull``); a
@@ -38,6 +39,7 @@ from .frame import RenderSettings
 from .surfels import Surfels
 
 SETTLE_S = 0.3  # the camera still this long: render the full-resolution frame
+MOVING_LOD_BLUR_FRACTION = 1.0  # the LOD stop of the frames drawn while the camera moves
 MOVING_SCALE = 0.25  # resolution while the camera moves, x the chosen scale
 FOCUS_PULL_S = 0.15  # a click's focus change is eased over this long
 MAX_WIDTH = 1920  # frames wider than this (a large window) are rendered at this width
@@ -275,6 +277,12 @@ class _Session:
                             **shape)
         settings = replace(self.settings, lod=bool(self.lod.value),
                            show_lod=bool(self.show_lod.value) and bool(self.lod.value))
+        if kind == "low":
+            # while the camera moves: the paper's coarser LOD stop, 1.4-1.7x cheaper at a
+            # large blur (docs/maths.md, "The stop's margin"); the still frame keeps the
+            # settings' own
+            settings = replace(settings, lod_blur_fraction=max(settings.lod_blur_fraction,
+                                                               MOVING_LOD_BLUR_FRACTION))
         return camera, lens, settings
 
     # the render thread

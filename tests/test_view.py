@@ -213,3 +213,28 @@ def test_ctrl_c_stops_the_server_cleanly():
     time.sleep(0.2)
     assert "Traceback" not in "".join(lines)
     assert any("viewer stopped" in line for line in lines)
+
+
+def test_moving_frames_use_the_papers_lod_stop():
+    """While the camera moves the viewer draws a quarter-resolution frame at the paper's
+    coarser LOD stop (kappa 1); the still frame keeps the settings' own (0.35 by default)."""
+    from types import SimpleNamespace
+
+    from dofsplat.viewer import MOVING_LOD_BLUR_FRACTION, _Session
+
+    session = object.__new__(_Session)  # the controls current() reads, without a browser
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=400, height=300)
+    position, wxyz = pose_from_camera(cam)
+    value = lambda v: SimpleNamespace(value=v)  # noqa: E731
+    session.client = SimpleNamespace(camera=SimpleNamespace(
+        position=position, wxyz=wxyz, fov=math.radians(cam.fov_y), image_width=400,
+        image_height=300))
+    session.scale, session.focus, session.bokeh = value(1.0), value(3.0), value("disc")
+    session.blades, session.f_number, session.focal = value(0), value(0.0), value(0.0)
+    session.aperture, session.lod, session.show_lod = value(0.1), value(True), value(False)
+    session.settings = ds.RenderSettings()
+    _, _, moving = session.current("low")
+    camera, _, still = session.current("high")
+    assert moving.lod_blur_fraction == MOVING_LOD_BLUR_FRACTION == 1.0
+    assert still.lod_blur_fraction == ds.RenderSettings().lod_blur_fraction == 0.35
+    assert (camera.width, camera.height) == (400, 300)
