@@ -490,6 +490,10 @@ def main(argv=None) -> int:
     ap.add_argument("--lens-samples", type=int, default=1,
                     help="ours (with and without LOD) draws the aperture as this many parts "
                          "(RenderSettings.lens_samples; default 1, the single pass)")
+    ap.add_argument("--lod-blur-fraction", type=float,
+                    default=ds.RenderSettings.lod_blur_fraction,
+                    help="ours' LOD stop (RenderSettings.lod_blur_fraction; default the "
+                         "renderer's, 0.35; 1 is the paper's rule)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]
@@ -507,7 +511,8 @@ def main(argv=None) -> int:
         scene = SCENES[name](*size)
         if scene is None:
             continue
-        scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples)
+        scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples,
+                                             lod_blur_fraction=args.lod_blur_fraction)
         print(f"{name}: {len(scene.surfels):,} surfels, {size[0]}x{size[1]}, N = {samples}; "
               f"{scene.note}", file=sys.stderr)
         scene_rows, frames = measure_scene(scene, samples, repeat, TARGET_COC_PX, cache,
@@ -522,7 +527,7 @@ def main(argv=None) -> int:
               "samples": samples, "repeat": repeat, "targets_coc_px": list(TARGET_COC_PX),
               "tile": TILE, "worst_tile_percentile": WORST_TILE_PERCENTILE,
               "reference_version": REFERENCE_VERSION, "load_average": load,
-              "lens_samples": args.lens_samples,
+              "lens_samples": args.lens_samples, "lod_blur_fraction": args.lod_blur_fraction,
               "run_s": time.perf_counter() - t_start, "scene_s": scene_s, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(_finite(record), indent=1, default=_json_number, allow_nan=False) + "\n"

@@ -100,7 +100,7 @@ def psnr(a, b) -> float:
     return math.inf if mse == 0 else 10 * math.log10(1 / mse)
 
 
-def table(name, surfels, camera, lens, repeat, records):
+def table(name, surfels, camera, lens, repeat, records, kappa):
     small, large = APERTURES["lion" if name.startswith("lion") else "plane"]
     t = time.perf_counter()
     tree = build_hierarchy(surfels)
@@ -113,7 +113,7 @@ def table(name, surfels, camera, lens, repeat, records):
     results = {}
     for aperture, lod in rows:
         this = ds.ThinLens(focus_distance=lens.focus_distance, aperture=aperture) if aperture else None
-        settings = ds.RenderSettings(cutoff=2.5, lod=lod)
+        settings = ds.RenderSettings(cutoff=2.5, lod=lod, lod_blur_fraction=kappa)
         ms, st, res = time_frames(surfels, camera, this, settings, tree if lod else None, repeat)
         results[(aperture, lod)] = (ms, st, res)
     base = results[(0.0, False)][0]
@@ -135,13 +135,13 @@ def table(name, surfels, camera, lens, repeat, records):
     return tree
 
 
-def sweep(name, surfels, camera, lens, tree, repeat, scale):
+def sweep(name, surfels, camera, lens, tree, repeat, scale, kappa):
     out = []
     for a in SWEEP:
         aperture = a * scale
         this = ds.ThinLens(focus_distance=lens.focus_distance, aperture=aperture) if aperture else None
         for lod in (True, False):
-            ms, st, _ = time_frames(surfels, camera, this, ds.RenderSettings(lod=lod),
+            ms, st, _ = time_frames(surfels, camera, this, ds.RenderSettings(lod=lod, lod_blur_fraction=kappa),
                                     tree if lod else None, repeat)
             out.append({"scene": name, "aperture": aperture, "lod": lod, "ms": ms,
                         "fragments": st["fragments"], "splats": st["splats_rendered"]})
@@ -209,7 +209,12 @@ def main(argv=None):
     ap.add_argument("--scenes", default="plane,lion,lion81k,dragon-tree",
                     help="comma-separated: plane, lion, lion81k; dragon-tree times the "
                          "hierarchy of the full dragon (build, save, load)")
+    ap.add_argument("--lod-blur-fraction", type=float,
+                    default=ds.RenderSettings.lod_blur_fraction,
+                    help="LOD's stop (RenderSettings.lod_blur_fraction; default the "
+                         "renderer's, 0.35; 1 is the paper's rule)")
     args = ap.parse_args(argv)
+    print(f"LOD stop: lod_blur_fraction = {args.lod_blur_fraction:g}")
     print(f"machine: {machine()}")
     scenes = []
     names = args.scenes.split(",")
@@ -228,9 +233,10 @@ def main(argv=None):
             ap.error(f"unknown scene {name}")
     records, sweeps = [], []
     for name, surfels, camera, lens, scale in scenes:
-        tree = table(name, surfels, camera, lens, args.repeat, records)
+        tree = table(name, surfels, camera, lens, args.repeat, records, args.lod_blur_fraction)
         if args.plot:
-            sweeps += sweep(name, surfels, camera, lens, tree, max(1, args.repeat // 2), scale)
+            sweeps += sweep(name, surfels, camera, lens, tree, max(1, args.repeat // 2), scale,
+                            args.lod_blur_fraction)
     if "dragon-tree" in names:
         if DRAGON.exists():
             hierarchy_costs(DRAGON)
@@ -240,8 +246,9 @@ def main(argv=None):
         plot(args.plot, sweeps)
         print(f"\nplot: {args.plot}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": machine(), "table": records,
-                                               "sweep": sweeps}, indent=1))
+        Path(args.json).write_text(json.dumps({"machine": machine(),
+                                               "lod_blur_fraction": args.lod_blur_fraction,
+                                               "table": records, "sweep": sweeps}, indent=1))
 
 
 if __name__ == "__main__":

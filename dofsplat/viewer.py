@@ -278,7 +278,7 @@ class _Session:
         settings = replace(self.settings, lod=bool(self.lod.value),
                            show_lod=bool(self.show_lod.value) and bool(self.lod.value))
         if kind == "low":
-            # while the camera moves: the paper's coarser LOD stop, 1.4-1.7x cheaper at a
+            # while the camera moves: the paper's coarser LOD stop, 1.4-2.1x cheaper at a
             # large blur (docs/maths.md, "The stop's margin"); the still frame keeps the
             # settings' own
             settings = replace(settings, lod_blur_fraction=max(settings.lod_blur_fraction,

@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 
 from ..errors import DofsplatError
-from ..frame import RenderSettings
+from ..frame import MAX_LENS_SAMPLES, RenderSettings
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # argparse's status for a usage error; every user mistake gets it
@@ -276,7 +276,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "point of the lens with the rest of the blur, averaged: where blurred "
                         "surfaces touch or overlap, visibility is decided K times over a "
                         "smaller blur (4: 2.5-9 dB closer to the reference on the fidelity "
-                        "suite, for about K times the work). An isolated bright point then shows "
+                        "suite at the paper's LOD stop, for about K times the work). An isolated bright point then shows "
                         "K lobes instead of the aperture's disc or polygon, so the default "
                         "is 1, the paper's single pass (docs/maths.md, \"the lens in parts\")")
     lod = p.add_argument_group(
@@ -359,8 +359,6 @@ def positive_number(text: str) -> float:
 
 def lens_sample_count(text: str) -> int:
     """--lens-samples: an integer in 1..MAX_LENS_SAMPLES."""
-    from ..frame import MAX_LENS_SAMPLES
-
     try:
         k = int(text)
     except ValueError:
