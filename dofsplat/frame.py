@@ -43,6 +43,7 @@ class RenderSettings:
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
     lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
+    sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); about 1.5 x a pinhole frame's time; the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
@@ -187,6 +188,12 @@ def aperture_shape(lens, settings: RenderSettings):
 def kernel_floor(settings: RenderSettings) -> float:
     """What a tapered (LOD node's) kernel loses everywhere inside its cutoff: e^-c, else 0."""
     return math.exp(-settings.cutoff) if settings.taper else 0.0
+
+
+def front_pass(merge, settings: RenderSettings) -> bool:
+    """Whether the A-buffer's front pass runs (``backends.cpu.rasterize``): with the soft
+    merge of a blurred frame (K > 0), and in a sharp frame with ``sharp_visibility``."""
+    return merge[0] > 0.0 or (settings.sharp_visibility and settings.reconstruction == "soft")
 
 
 def merge_parameters(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float, float, float]:

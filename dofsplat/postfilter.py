@@ -103,7 +103,9 @@ def render_postfilter(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens
     stats are the pinhole render's plus filter_ms, max_coc_px and method "postfilter".
     """
     settings = settings or RenderSettings()
-    pinhole = render(surfels, camera, None, dataclasses.replace(settings, dof=False))
+    # the sharp frame as the reference draws its samples (``sharp_visibility``)
+    pinhole = render(surfels, camera, None,
+                     dataclasses.replace(settings, dof=False, sharp_visibility=True))
     _warm_up()
     t = time.perf_counter()
     if lens is None or not settings.dof:

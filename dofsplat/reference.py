@@ -183,10 +183,13 @@ def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens 
 
 
 def _pinhole_settings(settings: RenderSettings, shaded: bool) -> RenderSettings:
-    """``settings`` for one lens sample: no DOF blur, no LOD, and unlit if pre-shaded.
+    """``settings`` for one lens sample: no DOF blur, no LOD, unlit if pre-shaded, and the
+    front pass that keeps a grazing surface's z-range from merging what it hides
+    (``sharp_visibility``: without it two planes crossing at a shallow angle showed the
+    hidden one through the other as speckle in every sample).
 
     Only fields that RenderSettings has are set, so this holds as the settings grow."""
-    changes = {"dof": False, "lod": False, "show_lod": False}
+    changes = {"dof": False, "lod": False, "show_lod": False, "sharp_visibility": True}
     if shaded:
         changes["shading"] = "none"
     names = {f.name for f in dataclasses.fields(RenderSettings)}

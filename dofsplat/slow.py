@@ -75,7 +75,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
     """
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
-                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GRAD_Z, GREEN, MIX,
+                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GREEN, GZX, GZY, MIX,
                                 MX, MY, N_FIELDS, RAD, REACH, RED, X0, X1, ZHI, ZLO)
     from .frame import aperture_shape, kernel_floor
 
@@ -181,7 +181,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         splats[k, [F11, F12, F22]] = Fi[0, 0], Fi[0, 1], Fi[1, 1]
         splats[k, FLOOR] = floor
         splats[k, [RAD, REACH, MIX]] = radius, support, mix
-        splats[k, GRAD_Z] = float(np.linalg.norm(-np.array([tu[k, 2], tv[k, 2]]) @ np.linalg.inv(J)))
+        splats[k, [GZX, GZY]] = -np.array([tu[k, 2], tv[k, 2]]) @ np.linalg.inv(J)
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
     return splats, bbox, visible
@@ -201,11 +201,13 @@ def _exponents(m, Wi, x0, x1, y0, y1):
 
 
 def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
-                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5), blades=None):
+                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5), blades=None,
+                        sharp_visibility: bool = False):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
     merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K = 0: the paper's "over");
-    blades: (N, 2) edge normals of a polygonal aperture (None: round).
+    blades: (N, 2) edge normals of a polygonal aperture (None: round);
+    sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility).
     """
     from .raster.abuffer import OPAQUE
     from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX,
@@ -214,7 +216,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
     blades = np.zeros((0, 2)) if blades is None else blades
 
     splats = splats.copy()
-    if merge[0] > 0:
+    if merge[0] > 0 or sharp_visibility:
         front = front_reference(splats, visible, width, height)
         for k in np.flatnonzero(visible):
             splats[k, AMP] *= visibility_reference(splats[k], front, merge, width)
@@ -343,11 +345,12 @@ def merge_fraction_reference(d_front, d_back, opacity_front, merge):
 
 
 def front_reference(splats, visible, width, height):
-    """(H * W, 2): per pixel the least depth and z_hi of the opaque unblurred disks on it."""
-    from .raster.abuffer import FRONT_CUTOFF, OPAQUE
-    from .splat.project import ALPHA, DEPTH, F11, F12, F22, MX, MY, ZHI
+    """(H * W, 3): per pixel the least depth and z_hi of the opaque unblurred disks on it,
+    and the nearest one's z_hi + MERGE_REACH |g| (C_r + 1) (abuffer.front_fragments)."""
+    from .raster.abuffer import FRONT_CUTOFF, MERGE_REACH, OPAQUE
+    from .splat.project import ALPHA, COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZHI
 
-    front = np.full((height, width, 2), np.inf)
+    front = np.full((height, width, 3), np.inf)
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
     for k in np.flatnonzero(visible):
         s = splats[k]
@@ -356,30 +359,60 @@ def front_reference(splats, visible, width, height):
         Fi = np.array([[s[F11], s[F12]], [s[F12], s[F22]]])
         d = np.stack([xs - s[MX], ys - s[MY]], axis=-1)
         inside = 0.5 * np.einsum("...i,ij,...j->...", d, Fi, d) < FRONT_CUTOFF
-        front[..., 0] = np.where(inside, np.minimum(front[..., 0], s[DEPTH]), front[..., 0])
+        reach = s[ZHI] + MERGE_REACH * math.hypot(s[GZX], s[GZY]) * (s[COC] + 1)
+        nearer = inside & (s[DEPTH] < front[..., 0])
+        front[..., 2] = np.where(nearer, reach, front[..., 2])
+        front[..., 0] = np.where(nearer, s[DEPTH], front[..., 0])
         front[..., 1] = np.where(inside, np.minimum(front[..., 1], s[ZHI]), front[..., 1])
-    return front.reshape(-1, 2)
+    return front.reshape(-1, 3)
 
 
 def visibility_reference(s, front, merge, width):
-    """A splat's visibility (abuffer.splat_visibility): 9 points of its unblurred disk."""
-    from .raster.abuffer import VIS_SAMPLES
-    from .splat.project import DEPTH, F11, F12, F22, GRAD_Z, MX, MY, ZLO
+    """A splat's visibility (abuffer.splat_visibility): 9 points of its unblurred disk, then,
+    if it is hidden at all of them, 4 looks through the lens from each."""
+    from .raster.abuffer import (HIDDEN_H0, LENS_MARGIN, LENS_POINTS, LENS_RING, MERGE_REACH,
+                                 VIS_SAMPLES)
+    from .splat.project import COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZLO
 
     height = front.shape[0] // width
     F = np.linalg.inv(np.array([[s[F11], s[F12]], [s[F12], s[F22]]]))
     L = np.linalg.cholesky(F)
     angles = np.arange(VIS_SAMPLES - 1) * 2 * math.pi / (VIS_SAMPLES - 1)
     points = [np.zeros(2)] + [L @ np.array([math.cos(a), math.sin(a)]) for a in angles]
-    removed = 0.0
+    g = np.array([s[GZX], s[GZY]])
+    zlo = s[ZLO] - 0.75 * np.linalg.norm(g)
+    m = np.array([s[MX], s[MY]])
+
+    def pixel(x):
+        j, i = math.floor(x[0]), math.floor(x[1])
+        return i * width + j if 0 <= j < width and 0 <= i < height else None
+
+    removed, hidden = 0.0, 0
     for o in points:
-        j, i = math.floor(s[MX] + o[0]), math.floor(s[MY] + o[1])
-        if not (0 <= j < width and 0 <= i < height):
+        p = pixel(m + o)
+        if p is None:
             continue
-        f_depth, f_zhi = front[i * width + j]
-        if s[ZLO] - 0.75 * s[GRAD_Z] > f_zhi:
+        f_depth, f_zhi = front[p, :2]
+        if zlo > f_zhi:
+            hidden += 1
             removed += merge_fraction_reference(f_depth, s[DEPTH], 1.0, merge)
-    return 1 - removed / VIS_SAMPLES
+    removed /= VIS_SAMPLES
+    if hidden < VIS_SAMPLES or removed >= 1 or np.linalg.norm(g) >= 1e29:
+        return 1 - removed
+    if zlo - MERGE_REACH * np.linalg.norm(g) * (s[COC] + 1) > front[pixel(m), 2]:
+        return 1 - removed  # its blurred fragments' z-ranges do not reach the front's
+    looks = []
+    for n, o in enumerate(points):
+        parallax = (LENS_RING * merge[0] * abs(1 / front[pixel(m + o), 0] - 1 / s[DEPTH])
+                    + LENS_MARGIN)
+        for l in range(LENS_POINTS):
+            a = (l + n / VIS_SAMPLES) * 2 * math.pi / LENS_POINTS
+            shift = parallax * np.array([math.cos(a), math.sin(a)])
+            x = m + o + shift  # beyond the image's edge the front goes on as at the edge
+            p = pixel((min(max(x[0], 0), width - 0.5), min(max(x[1], 0), height - 0.5)))
+            looks.append(zlo + g @ shift > front[p, 1])
+    t = float(np.clip((np.mean(looks) - HIDDEN_H0) / (1 - HIDDEN_H0), 0, 1))
+    return 1 - max(removed, t * t * (3 - 2 * t))
 
 
 # a surface: [w, wr, wg, wb, wa, wd, w of opaque fragments, z_lo, z_hi]
@@ -485,4 +518,6 @@ def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None)
     return rasterize_reference(splats, bbox, visible, camera.width, camera.height,
                                settings.cutoff, settings.background,
                                merge=merge_parameters(camera, lens, settings),
-                               blades=aperture_shape(lens, settings)[1])
+                               blades=aperture_shape(lens, settings)[1],
+                               sharp_visibility=settings.sharp_visibility
+                               and settings.reconstruction == "soft")

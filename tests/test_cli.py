@@ -182,10 +182,13 @@ def test_no_dof_and_frustum(plane_ply, workdir, capsys):
     w, h = SIZE
     frustum = ["-0.04", "0.04", str(-0.04 * h / w), str(0.04 * h / w), "0.1"]
     status, _, err = run_main(["render", plane_ply, "-o", "b.npy", "--size", SIZE_ARG,
-                               "--no-dof", "--frustum", *frustum, "--stats", "b.json"], capsys)
+                               "--no-dof", "--frustum", *frustum, "--stats", "b.json",
+                               "--sharp-visibility"], capsys)
     assert status == 0, err
     stats = json.loads(open("b.json").read())
     assert stats["lens"] is None and stats["settings"]["dof"] is False
+    assert stats["settings"]["sharp_visibility"] is True
+    assert stats["front_ms"] > 0  # the front pass ran in the sharp frame
     assert stats["camera"]["fov_y_deg"] is None
     assert stats["camera"]["frustum_lrbtn"] == pytest.approx([float(v) for v in frustum])
 

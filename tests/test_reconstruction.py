@@ -99,3 +99,26 @@ def test_a_translucent_surface_on_an_opaque_one_uncovers_nothing():
     alone = ds.render(opaque, cam, lens, settings).alpha
     full = ds.render(surfels, cam, lens, settings).alpha
     assert float(np.min(full - alone)) > -0.01
+
+
+def test_a_surface_hidden_from_the_whole_lens_does_not_merge():
+    """Two planes crossing at 12 degrees (the fidelity suite's ``intersect``), blurred: on
+    each side of the crossing the rear plane lies within the front one's z-range over a
+    circle of confusion, so the A-buffer used to merge it into the front (a grey haze over
+    the whole lower half). A splat hidden at every point of its disk and from every point
+    of the lens (its front seen with the parallax between them) is removed
+    (``abuffer.splat_visibility``), if its blurred fragments' z-ranges reach the front's.
+    Measured at 128 x 128, A = 0.8 (CoC up to 6.6 px), against 32 lens samples: 27.0 dB
+    whole frame, against 16.6 dB before (against 64 samples: 26.9 and 16.6). The bound,
+    23 dB, keeps 60 % of the gain."""
+    import dataclasses
+
+    from dofsplat.demo import intersecting_planes_scene
+    from dofsplat.metrics import psnr
+    from dofsplat.reference import render_reference
+
+    surfels, cam, lens = intersecting_planes_scene(128, 128)
+    lens = dataclasses.replace(lens, aperture=0.8)
+    ref = render_reference(surfels, cam, lens, samples=32, progress=False).image
+    img = ds.render(surfels, cam, lens, ds.RenderSettings()).image
+    assert psnr(img, ref) > 23.0

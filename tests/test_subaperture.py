@@ -110,14 +110,15 @@ def test_contact_seam_is_closer_to_the_reference_in_parts(lod):
     """Spheres resting on a checkered floor (the fidelity suite's contact scene) at 192 x 144,
     a largest CoC of ~19 px, against the 32-sample reference. One pass merges or separates
     the blurred sphere and the floor wholesale (the seam) and, with LOD, blurs the checks
-    twice; 4 parts measured 8.3 dB (LOD) and 6.0 dB (no LOD) closer (48 samples). The bound,
-    4 dB, is under both; one pass is 0 dB better than itself, so it fails there."""
+    twice; 4 parts measured 5.9 dB (LOD) and 4.0 dB (no LOD) closer (32 samples; 7.0 and
+    5.2 before one pass removed what is hidden from the whole lens). The bound, 3 dB, is
+    under both; one pass is 0 dB better than itself, so it fails there."""
     s, cam, lens = demo.contact_scene(192, 144)
     lens = ds.ThinLens(focus_distance=lens.focus_distance, aperture=0.3)
     ref = render_reference(s, cam, lens, ds.RenderSettings(), samples=32, progress=False).image
     psnr = {k: compare(ds.render(s, cam, lens, ds.RenderSettings(lens_samples=k, lod=lod)).image,
                        ref)["psnr"] for k in (1, 4)}
-    assert psnr[4] >= psnr[1] + 4.0, psnr
+    assert psnr[4] >= psnr[1] + 3.0, psnr
 
 
 def test_pinholes_and_dof_off_are_one_pass():

@@ -19,8 +19,8 @@ import numpy as np
 
 from ..camera import Camera, ThinLens
 from ..frame import (RenderResult, RenderSettings, aperture_shape, coc_coefficients,
-                     kernel_floor, lens_parts, lod_kappa, lod_level_colors, lod_tree,
-                     merge_parameters)
+                     front_pass, kernel_floor, lens_parts, lod_kappa, lod_level_colors,
+                     lod_tree, merge_parameters)
 from ..surfels import Surfels
 
 
@@ -199,8 +199,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     (``abuffer.splat_visibility``) gives up that share of its weight (docs/maths.md,
     "Surface reconstruction"). Changes ``splats`` and ``visible`` in place.
     """
-    from ..raster.abuffer import (TILE, apply_visibility, bin_splats, front_band,
-                                 rasterize_band)
+    from ..raster.abuffer import (FRONT_FIELDS, TILE, apply_visibility, bin_splats,
+                                 front_band, rasterize_band)
 
     w, h = camera.width, camera.height
     n_tx = -(-w // TILE)
@@ -214,9 +214,9 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0
     binned = {}
-    if coc_k > 0.0:
+    if front_pass(merge, settings):
         t = time.perf_counter()
-        front = np.full((h * w, 2), np.inf, np.float32)
+        front = np.full((h * w, FRONT_FIELDS), np.inf, np.float32)
         for ty0, ty1 in bands:
             offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
             if len(bands) == 1:

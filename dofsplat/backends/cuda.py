@@ -48,8 +48,9 @@ import numpy as np
 from numba import cuda
 
 from ..lod.select import DESCEND, SELECT, gather_splat, visit_node
-from ..raster.abuffer import (MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE, front_fragments,
-                              insert_fragment, resolve_to_image, splat_visibility)
+from ..raster.abuffer import (FRONT_FIELDS, MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE,
+                              front_fragments, insert_fragment, resolve_to_image,
+                              splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
 from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX, MY,
@@ -681,16 +682,16 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge,
     visibility come first, as in ``backends.cpu.rasterize``.
     """
     from ..raster.abuffer import OPAQUE
-    from ..frame import aperture_shape
+    from ..frame import aperture_shape, front_pass
 
     _, blades, table, _ = aperture_shape(lens, settings)
 
     w, h = camera.width, camera.height
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
     n_tx0 = -(-w // TILE)
-    if coc_k > 0.0 and splats.shape[0]:
-        front = _WS.get("front", (h * w, 2), np.float32)
-        front.copy_to_device(np.full((h * w, 2), np.inf, np.float32))
+    if front_pass(merge, settings) and splats.shape[0]:
+        front = _WS.get("front", (h * w, FRONT_FIELDS), np.float32)
+        front.copy_to_device(np.full((h * w, FRONT_FIELDS), np.inf, np.float32))
         n_tiles = offsets.shape[0] - 1
         _front[_blocks(n_tiles), THREADS](splats, offsets, ids, n_tx0, w, h, OPAQUE, front)
         _visibility[_blocks(splats.shape[0]), THREADS](splats, visible, front, w, h, coc_k,

@@ -166,7 +166,8 @@ def settings_from_args(args):
                           device=getattr(args, "device", "cpu"),
                           reconstruction=getattr(args, "reconstruction", "soft"),
                           taper=getattr(args, "taper", False),
-                          lens_samples=getattr(args, "lens_samples", 1))
+                          lens_samples=getattr(args, "lens_samples", 1),
+                          sharp_visibility=getattr(args, "sharp_visibility", False))
 
 
 def check_arguments(args) -> None:
@@ -257,6 +258,7 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "lod_blur_fraction": settings.lod_blur_fraction, "show_lod": settings.show_lod,
         "device": settings.device, "reconstruction": settings.reconstruction,
         "taper": settings.taper, "lens_samples": settings.lens_samples,
+        "sharp_visibility": settings.sharp_visibility,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}

@@ -271,6 +271,13 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "parallax is small against their blur and removes what such a "
                         "surface hides, so a blurred object touching another shows no seam; "
                         "paper is Section 6.4's z-range decision alone (docs/maths.md)")
+    p.add_argument("--sharp-visibility", action="store_true",
+                   help="in a sharp frame (no lens, or --no-dof) too, remove the surfels "
+                        "hidden behind an opaque surface before blending, so that a surface "
+                        "seen at a grazing angle does not let what lies just behind it show "
+                        "through (speckle where two surfaces cross at a shallow angle); about "
+                        "1.5x a sharp frame's time. Blurred frames always do it, and the "
+                        "reference's samples and --method postfilter's sharp frame too")
     p.add_argument("--lens-samples", metavar="K", type=lens_sample_count, default=1,
                    help="draw the aperture as K parts (1-64), each a frame seen from its own "
                         "point of the lens with the rest of the blur, averaged: where blurred "

@@ -26,8 +26,8 @@ import numpy as np
 
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
 from ..splat.ewa import exponent, row_pixel_range, row_span, row_start
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, F11, F12, F22, FLOOR,
-                             GRAD_Z, GREEN, MIX, MX, MY, RAD, RED, X0, X1, ZHI, ZLO)
+from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH, F11, F12, F22, FLOOR,
+                             GREEN, GZX, GZY, MIX, MX, MY, RAD, RED, X0, X1, ZHI, ZLO)
 
 TILE = ROW  # 16: the aperture kernel's SIMD rows (splat/bokeh.py) are a tile wide
 MAX_SURFACES = 8
@@ -41,12 +41,26 @@ RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
 # unblurred disk (1/2 x^T F^-1 x < FRONT_CUTOFF: the disk radius is the basis's 2 sigma)
 OPAQUE = 0.95
 FRONT_CUTOFF = 2.0
+FRONT_FIELDS = 3  # the front map's floats per pixel (front_fragments)
 # the merge band: two surfaces whose parallax ratio rho = (Delta + 1 px) / max(C_r) is below
 # MERGE_RHO0 merge, above MERGE_RHO1 stay separate, smoothly in between (docs/maths.md)
 MERGE_RHO0 = 0.15
 MERGE_RHO1 = 0.5
 # the sample points of a splat's visibility: its centre and 8 points on its 1-sigma ellipse
 VIS_SAMPLES = 9
+# a splat hidden at all of them is looked at from LENS_POINTS points of the lens per sample
+# point, on a ring at LENS_RING of the aperture's radius and LENS_MARGIN px more (the front
+# pass's disks end where their kernels' tails do not; turned from one sample point to the
+# next), and removed as the share of those looks that find it hidden rises from
+# HIDDEN_H0 to 1 (docs/maths.md, "Hidden from the whole lens")
+LENS_POINTS = 4
+LENS_RING = 1.0
+LENS_MARGIN = 2.0
+HIDDEN_H0 = 0.9
+# ... if its blurred fragments' z-ranges reach the nearest front's: each surface's depths
+# over MERGE_REACH x (its CoC + 1 px) (the A-buffer's united ranges reach beyond one CoC,
+# merge after merge: 3 kept 60 % of `intersect`'s gain, 12 no more than 6; docs/maths.md)
+MERGE_REACH = 6.0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -201,8 +215,10 @@ def merge_fraction(d_front, d_back, opacity_front, coc_k, inv_focus, rho0, rho1)
 def front_fragments(splats, k, px0, px1, py0, py1, front, width):
     """Splat k's unblurred disk into the front buffer of pixels px0..px1 x py0..py1.
 
-    front: (H * W, 2) float32, per pixel the smallest depth and the smallest z_hi of the
-    opaque disks covering it.
+    front: (H * W, FRONT_FIELDS) float32, per pixel the least depth and the least z_hi of
+    the opaque disks covering it, and the nearest disk's z_hi + MERGE_REACH |g| (C_r + 1 px)
+    (how far back the A-buffer's united z-ranges of its blurred fragments reach, g its
+    depth change per pixel).
     """
     mx, my = splats[k, MX], splats[k, MY]
     f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
@@ -214,12 +230,15 @@ def front_fragments(splats, k, px0, px1, py0, py1, front, width):
     y0 = max(int(math.floor(my - hy - 0.5)), py0)
     y1 = min(int(math.ceil(my + hy - 0.5)), py1)
     d, zhi = splats[k, DEPTH], splats[k, ZHI]
+    gx, gy = splats[k, GZX], splats[k, GZY]
+    reach = zhi + MERGE_REACH * math.sqrt(gx * gx + gy * gy) * (splats[k, COC] + 1.0)
     for i in range(y0, y1 + 1):
         for j in range(x0, x1 + 1):
             if exponent(j + 0.5 - mx, i + 0.5 - my, f11, f12, f22) < FRONT_CUTOFF:
                 p = i * width + j
                 if d < front[p, 0]:
                     front[p, 0] = d
+                    front[p, 2] = reach
                 if zhi < front[p, 1]:
                     front[p, 1] = zhi
 
@@ -247,8 +266,13 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     1-sigma ellipse), a splat is hidden if its z-range, widened by its depth change over
     the 0.75 px to the pixel centre, begins behind the z-range of the front there; hidden
     by a front of merge fraction m (same layer through the lens), its blur would add to the
-    front's where every lens sample sees the front: it is removed by m. Hidden by a front far from it in parallax, it stays, and the A-buffer lets the
-    front's blurred rim show it (partial occlusion).
+    front's where every lens sample sees the front: it is removed by m. Hidden by a front
+    far from it in parallax, it stays, and the A-buffer lets the front's blurred rim show
+    it (partial occlusion) -- unless the front hides it from the whole lens: hidden at all
+    of its points, it is looked at from LENS_POINTS points of the lens per point (the front
+    seen from lens point u lies Delta u pixels away, Delta = K (1/U_front - 1/U) its
+    parallax), and the share h of those looks that find it hidden removes it by
+    smoothstep((h - HIDDEN_H0) / (1 - HIDDEN_H0)).
     """
     mx, my = splats[k, MX], splats[k, MY]
     f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
@@ -260,8 +284,11 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     l22 = math.sqrt(max(v22 - l21 * l21, 0.0))
     # the front is sampled at pixel centres up to ~0.7 px from the sample point: allow the
     # splat's own surface to move that much in depth
-    zlo, depth = splats[k, ZLO] - 0.75 * splats[k, GRAD_Z], splats[k, DEPTH]
+    gx, gy = splats[k, GZX], splats[k, GZY]
+    grad = math.sqrt(gx * gx + gy * gy)
+    zlo, depth = splats[k, ZLO] - 0.75 * grad, splats[k, DEPTH]
     removed = 0.0
+    hidden = 0
     for s in range(VIS_SAMPLES):
         dx = dy = 0.0
         if s > 0:
@@ -274,8 +301,44 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
             continue
         p = i * width + j
         if zlo > front[p, 1]:
+            hidden += 1
             removed += merge_fraction(front[p, 0], depth, 1.0, coc_k, inv_focus, rho0, rho1)
-    return 1.0 - removed / VIS_SAMPLES
+    removed /= VIS_SAMPLES
+    if hidden < VIS_SAMPLES or removed >= 1.0 or grad >= 1e29:
+        return 1.0 - removed
+    # only a splat whose blurred fragments' z-ranges reach those of the front's (the
+    # A-buffer unites the z-ranges of the fragments a blur brings to a pixel, which span a
+    # surface's depths over its CoC and, merge after merge, beyond): they would merge with
+    # the front's. Behind a front they cannot reach, "over" hides it as it should
+    centre = int(math.floor(my)) * width + int(math.floor(mx))
+    if zlo - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[centre, 2]:
+        return 1.0 - removed
+    # hidden where the pinhole looks: is it hidden from the whole lens? Its own surface,
+    # extended along its tangent plane, must not hide it (a convex surface curves away
+    # from its tangent plane, behind it)
+    looks = 0
+    seen = 0
+    for s in range(VIS_SAMPLES):
+        dx = dy = 0.0
+        if s > 0:
+            a = (s - 1) * (2.0 * math.pi / (VIS_SAMPLES - 1))
+            ux, uy = math.cos(a), math.sin(a)
+            dx, dy = l11 * ux, l21 * ux + l22 * uy
+        j = int(math.floor(mx + dx))
+        i = int(math.floor(my + dy))
+        parallax = LENS_RING * coc_k * abs(1.0 / front[i * width + j, 0] - 1.0 / depth) + LENS_MARGIN
+        for l in range(LENS_POINTS):
+            a = (l + s / VIS_SAMPLES) * (2.0 * math.pi / LENS_POINTS)
+            ox, oy = parallax * math.cos(a), parallax * math.sin(a)
+            # beyond the image's edge the front is taken to go on as it is at the edge
+            j = min(max(int(math.floor(mx + dx + ox)), 0), width - 1)
+            i = min(max(int(math.floor(my + dy + oy)), 0), height - 1)
+            looks += 1
+            if zlo + gx * ox + gy * oy <= front[i * width + j, 1]:
+                seen += 1
+    h = 1.0 - seen / looks
+    t = min(max((h - HIDDEN_H0) / (1.0 - HIDDEN_H0), 0.0), 1.0)
+    return 1.0 - max(removed, t * t * (3.0 - 2.0 * t))
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -231,23 +231,24 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     the aperture turned by 180 degrees); else W carries the paper's Gaussian blur.
 
     Returns (ok, mx, my, w11, w12, w22, det_j, depth, z_lo, z_hi, coc_r, f11, f12, f22,
-    grad_z, radius): ok
+    gz_x, gz_y, radius): ok
     is False for a culled surfel (behind the near plane, or a back face when culling is on);
     F = (f11, f12, f22) is the unblurred disk J V^r J^T + J V^{q,l} J^T, the splat as a
-    pinhole sees it, without the prefilter; grad_z the depth change per pixel across the
-    tangent plane (the front pass of the A-buffer, raster/abuffer.py).
+    pinhole sees it, without the prefilter; (gz_x, gz_y) the depth change per pixel (x right,
+    y down) along the tangent plane (the front pass of the A-buffer, raster/abuffer.py;
+    (1e30, 0) for a plane seen edge-on).
     """
     px = view[0] * p_world[0] + view[1] * p_world[1] + view[2] * p_world[2] + view[3]
     py = view[4] * p_world[0] + view[5] * p_world[1] + view[6] * p_world[2] + view[7]
     pz = view[8] * p_world[0] + view[9] * p_world[1] + view[10] * p_world[2] + view[11]
     depth = -pz
     if depth <= near:
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0
     nx = view[0] * n_world[0] + view[1] * n_world[1] + view[2] * n_world[2]
     ny = view[4] * n_world[0] + view[5] * n_world[1] + view[6] * n_world[2]
     nz = view[8] * n_world[0] + view[9] * n_world[1] + view[10] * n_world[2]
     if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:  # normal points away from the eye
-        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0
     if t_world[0] == 0.0 and t_world[1] == 0.0 and t_world[2] == 0.0:
         tux, tuy, tuz = tangent_from_normal(nx, ny, nz)
     else:
@@ -313,13 +314,12 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     half = reach * math.sqrt(var_z) + z_margin * 2.0 * sigma_l
     # depth change per pixel along the tangent plane: (dU/du, dU/dv) J^-1 with U = -Z
     det_s = j11 * j22 - j12 * j21
-    grad_z = 1e30
+    gx, gy = 1e30, 0.0
     if det_s != 0.0:
         gx = (-tuz * j22 + tvz * j21) / det_s
         gy = (tuz * j12 - tvz * j11) / det_s
-        grad_z = math.sqrt(gx * gx + gy * gy)
     return (True, mx, my, w11, w12, w22, det_j * area, depth, depth - half, depth + half, coc_r,
-            f11, f12, f22, grad_z, radius)
+            f11, f12, f22, gx, gy, radius)
 
 
 # -- pixel footprint of a truncated kernel ----------------------------------------------

@@ -5,7 +5,7 @@ CPU, which halves a frame's largest array and leaves images unchanged to 98 dB):
 screen mean, conic (inverse variance), amplitude, z-range, depth, shaded colour, opacity,
 CoC radius, unclipped bbox columns, the aperture's radius and reach (splat/bokeh.py), the
 unblurred footprint's conic (the splat as a pinhole sees it, for the A-buffer's front pass)
-and its depth change per pixel; an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
+and its depth change per pixel (signed, x and y); an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
 inclusive) clipped to the image; and a visibility flag. A splat's fragment weight at pixel centre x is
 
     amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
@@ -26,12 +26,12 @@ from .ewa import kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 # the rasteriser reads the first N_RASTER_FIELDS (the CUDA backend keeps a batch of them in
 # shared memory); the front pass and the visibility read the rest too
 (MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, X0, X1, FLOOR, RAD,
- REACH, MIX, COC, F11, F12, F22, GRAD_Z) = range(24)
-N_FIELDS = 24
+ REACH, MIX, COC, F11, F12, F22, GZX, GZY) = range(25)
+N_FIELDS = 25
 N_RASTER_FIELDS = 19
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
                 "red", "green", "blue", "alpha", "x0", "x1", "floor", "aperture_radius_px",
-                "reach_px", "edge_mix", "coc_radius_px", "f11", "f12", "f22", "grad_z")
+                "reach_px", "edge_mix", "coc_radius_px", "f11", "f12", "f22", "gz_x", "gz_y")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -86,7 +86,7 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         cov = (np.float64(lod_cov[k, 0]), np.float64(lod_cov[k, 1]), np.float64(lod_cov[k, 2]),
                np.float64(lod_cov[k, 3]), np.float64(lod_cov[k, 4]), np.float64(lod_cov[k, 5]))
     (ok, mx, my, w11, w12, w22, area_px, depth, zlo, zhi, coc_r, f11, f12, f22,
-     grad_z, radius) = project_surfel(
+     gz_x, gz_y, radius) = project_surfel(
         p, nn, t, np.float64(ru[k]), np.float64(rv[k]), np.float64(area[k]), view_t,
         ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces, disc)
     if not ok:
@@ -139,7 +139,8 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     out[k, F11] = f22 * f_inv
     out[k, F12] = -f12 * f_inv
     out[k, F22] = f11 * f_inv
-    out[k, GRAD_Z] = grad_z
+    out[k, GZX] = gz_x
+    out[k, GZY] = gz_y
     out[k, FLOOR] = floor_k
     out[k, RAD] = radius
     out[k, REACH] = reach
