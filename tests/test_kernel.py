@@ -167,3 +167,40 @@ def test_kernel_pixel_sum_equals_a_direct_sum():
         dx, dy = xs - mx, ys - my
         q = 0.5 * (c[0, 0] * dx * dx + 2 * c[0, 1] * dx * dy + c[1, 1] * dy * dy)
         assert fast == pytest.approx(np.exp(-q)[q < 2.5].sum(), rel=1e-12)
+
+
+@pytest.mark.parametrize("tilt_deg, turn_deg", [(60.0, 0.0), (75.0, 35.0), (30.0, -110.0)])
+def test_depth_gradient_is_the_tangent_planes(tilt_deg, turn_deg):
+    """A splat's (gz_x, gz_y) is the depth change per pixel (x right, y down) along its
+    tangent plane (the front pass carries a splat's surface along it). On a plane the
+    depth of a neighbouring surfel, a few pixels away, is its first-order prediction
+    depth + g . (m' - m) up to the curvature of 1/depth, which is affine in the pixel:
+    measured, the worst residual is 0.9-1.8 % of the depth change; the bound, 3 %, is far
+    below what a wrong sign or a swapped axis gives (100 % and more)."""
+    from dofsplat.backends.cpu import project
+    from dofsplat.splat.project import DEPTH, GZX, GZY, MX, MY
+
+    n, spacing = 24, 1.0 / 24
+    ij = np.indices((n, n)).reshape(2, -1).T.astype(float)
+    flat = np.column_stack([(ij - (n - 1) / 2) * spacing, np.zeros(n * n)])
+    a, b = math.radians(tilt_deg), math.radians(turn_deg)
+    tilt = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    turn = np.array([[math.cos(b), -math.sin(b), 0], [math.sin(b), math.cos(b), 0], [0, 0, 1]])
+    rot = tilt @ turn
+    s = ds.Surfels(positions=flat @ rot.T, normals=np.tile(rot[:, 2], (n * n, 1)),
+                   radius=np.full(n * n, spacing), colors=np.full((n * n, 3), 0.5))
+    cam = front_camera(128, 128, distance=2.5)
+    splats, _, visible = project(s, s.colors, cam, None, ds.RenderSettings(lod=False))
+    assert visible.all()
+    sp = splats.astype(np.float64)
+    grid = np.arange(n * n).reshape(n, n)
+    worst, checked = 0.0, 0
+    for k, l in [(grid[i, j], grid[i + di, j + dj]) for i in range(n - 1) for j in range(n - 1)
+                 for di, dj in ((1, 0), (0, 1))]:
+        predicted = sp[k, GZX] * (sp[l, MX] - sp[k, MX]) + sp[k, GZY] * (sp[l, MY] - sp[k, MY])
+        actual = sp[l, DEPTH] - sp[k, DEPTH]
+        if abs(actual) > 1e-4:
+            worst = max(worst, abs(predicted - actual) / abs(actual))
+            checked += 1
+    assert checked > n * n // 2
+    assert worst < 0.03
