@@ -374,6 +374,7 @@ def visibility_reference(s, front, merge, width):
                                  VIS_SAMPLES)
     from .splat.project import COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZLO
 
+    s = np.asarray(s, np.float64)  # as the kernel reads a float32 row: in float64
     height = front.shape[0] // width
     F = np.linalg.inv(np.array([[s[F11], s[F12]], [s[F12], s[F22]]]))
     L = np.linalg.cholesky(F)

@@ -194,9 +194,10 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     """A-buffer rasterisation and resolve, band by band (Section 6.4).
 
     lens: the lens whose aperture shape the splats carry (``aperture_shape``).
-    merge: ``merge_parameters``; with K > 0 a front pass first finds, per pixel, the
-    nearest opaque unblurred disk, and every splat hidden behind a front of the same layer
-    (``abuffer.splat_visibility``) gives up that share of its weight (docs/maths.md,
+    merge: ``merge_parameters``; with K > 0 (or ``settings.sharp_visibility``,
+    ``frame.front_pass``) a front pass first finds, per pixel, the nearest opaque unblurred
+    disk, and every splat hidden behind a front of the same layer, or from the whole lens
+    (``abuffer.splat_visibility``), gives up that share of its weight (docs/maths.md,
     "Surface reconstruction"). Changes ``splats`` and ``visible`` in place.
     """
     from ..raster.abuffer import (FRONT_FIELDS, TILE, apply_visibility, bin_splats,

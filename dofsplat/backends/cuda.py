@@ -678,8 +678,9 @@ def bin_cuda(bbox, visible, camera):
 def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge, lens=None):
     """A-buffer rasterisation and resolve on the GPU: image, depth, weight, tile_stats.
 
-    merge: ``frame.merge_parameters``; with K > 0 the front pass and the splats'
-    visibility come first, as in ``backends.cpu.rasterize``.
+    merge: ``frame.merge_parameters``; with K > 0 (or ``settings.sharp_visibility``,
+    ``frame.front_pass``) the front pass and the splats' visibility come first, as in
+    ``backends.cpu.rasterize``.
     """
     from ..raster.abuffer import OPAQUE
     from ..frame import aperture_shape, front_pass
