@@ -57,6 +57,11 @@ def main(argv=None) -> int:
             page.mouse.click(230, 350)  # the near floor, beside the red sphere
             wait_for("focus on the surface", n)
             wait_for("sent", n + 1)
+            # headless Chromium draws WebGL in software, and viser says so in a toast that
+            # would cover the picture: close it (a GPU-backed browser shows none)
+            close = page.locator("button.mantine-Notification-closeButton")
+            for i in range(close.count()):
+                close.nth(i).click(timeout=2000)
             time.sleep(1.5)
             page.screenshot(path=args.output)
             browser.close()
