@@ -4,6 +4,7 @@
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
     python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
+    python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
 
 Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
@@ -112,6 +113,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures here too")
     ap.add_argument("--no-exact", action="store_true",
                     help="RenderSettings(exact_normalization=False): what the pixel sum costs")
+    ap.add_argument("--sharp-visibility", action="store_true",
+                    help="RenderSettings(sharp_visibility=True): what the front pass costs in "
+                         "a pinhole frame (its 'front' column)")
     ap.add_argument("--big-frame", type=float, help=argparse.SUPPRESS)  # the subprocess
     args = ap.parse_args(argv)
     if args.big_frame is not None:
@@ -133,7 +137,8 @@ def main(argv=None) -> int:
                                                / max(r["fragments"], 1))
             else:
                 r = frames(name, a, args.repeat,
-                           ds.RenderSettings(exact_normalization=not args.no_exact))
+                           ds.RenderSettings(exact_normalization=not args.no_exact,
+                                             sharp_visibility=args.sharp_visibility))
             r.update(scene=name, aperture=a)
             records.append(r)
             print(f"| {name} | {a:g} | {r['splats']:,} | {r['fragments']:,} | "

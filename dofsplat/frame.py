@@ -43,7 +43,7 @@ class RenderSettings:
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
     lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
-    sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); about 1.5 x a pinhole frame's time; the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
+    sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); 1.1-1.5 x a pinhole frame's time (bench/profile.py --sharp-visibility); the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 
     def __post_init__(self):
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):

@@ -275,8 +275,8 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                    help="in a sharp frame (no lens, or --no-dof) too, remove the surfels "
                         "hidden behind an opaque surface before blending, so that a surface "
                         "seen at a grazing angle does not let what lies just behind it show "
-                        "through (speckle where two surfaces cross at a shallow angle); about "
-                        "1.5x a sharp frame's time. Blurred frames always do it, and the "
+                        "through (speckle where two surfaces cross at a shallow angle); "
+                        "1.1-1.5x a sharp frame's time. Blurred frames always do it, and the "
                         "reference's samples and --method postfilter's sharp frame too")
     p.add_argument("--lens-samples", metavar="K", type=lens_sample_count, default=1,
                    help="draw the aperture as K parts (1-64), each a frame seen from its own "

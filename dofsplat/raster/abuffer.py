@@ -258,6 +258,18 @@ def front_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, front):
                 front_fragments(splats, k, px0, px1, py0, py1, front, width)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def disk_point(s, l11, l21, l22):
+    """Sample point s of a splat's visibility, as an offset from its centre: 0 the centre,
+    1..VIS_SAMPLES - 1 evenly round its 1-sigma ellipse x = L u (F = L L^T, L lower
+    triangular with entries l11, l21, l22)."""
+    if s == 0:
+        return 0.0, 0.0
+    a = (s - 1) * (2.0 * math.pi / (VIS_SAMPLES - 1))
+    ux, uy = math.cos(a), math.sin(a)
+    return l11 * ux, l21 * ux + l22 * uy
+
+
 @numba.njit(cache=True, nogil=True)
 def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1):
     """The share of splat k that survives the front pass, in [0, 1] (docs/maths.md).
@@ -290,11 +302,7 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     removed = 0.0
     hidden = 0
     for s in range(VIS_SAMPLES):
-        dx = dy = 0.0
-        if s > 0:
-            a = (s - 1) * (2.0 * math.pi / (VIS_SAMPLES - 1))
-            ux, uy = math.cos(a), math.sin(a)
-            dx, dy = l11 * ux, l21 * ux + l22 * uy
+        dx, dy = disk_point(s, l11, l21, l22)
         j = int(math.floor(mx + dx))
         i = int(math.floor(my + dy))
         if j < 0 or i < 0 or j >= width or i >= height:
@@ -319,11 +327,7 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     looks = 0
     seen = 0
     for s in range(VIS_SAMPLES):
-        dx = dy = 0.0
-        if s > 0:
-            a = (s - 1) * (2.0 * math.pi / (VIS_SAMPLES - 1))
-            ux, uy = math.cos(a), math.sin(a)
-            dx, dy = l11 * ux, l21 * ux + l22 * uy
+        dx, dy = disk_point(s, l11, l21, l22)
         j = int(math.floor(mx + dx))
         i = int(math.floor(my + dy))
         parallax = LENS_RING * coc_k * abs(1.0 / front[i * width + j, 0] - 1.0 / depth) + LENS_MARGIN
