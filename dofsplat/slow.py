@@ -68,15 +68,19 @@ def circumellipse_appendix(A, B, C, r):
 
 
 def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
-                      settings: RenderSettings, lod_cov=None):
+                      settings: RenderSettings, lod_cov=None, color_grad=None, gain=None):
     """numpy twin of ``backends.cpu.project``: (splats (N, N_FIELDS), bbox (N, 4), visible (N,)).
 
     lod_cov: optional (N, 6) world covariances of an LOD filter V^{q,l} per surfel
-    (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse.
+    (xx, xy, xz, yy, yz, zz): the kernel is then eq. 12 with Section 6.2's circumellipse;
+    color_grad: optional (N, 6) colour gradients of LOD nodes (Cov(colour, position . t) in
+    each node's tangent frame, lod/hierarchy.py) and gain (N, 3) the shading's factor on
+    the colour: a node's colour slope is then Cov(colour, screen position) W_total^-1.
     """
-    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH,
-                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GREEN, GZX, GZY, MIX,
-                                MX, MY, N_FIELDS, RAD, REACH, RED, X0, X1, ZHI, ZLO)
+    from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH,
+                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GREEN, GX,
+                                GY, GZX, GZY, MIX, MX, MY, N_FIELDS, RAD, REACH, RED, RX, RY, X0,
+                                X1, ZHI, ZLO)
     from .frame import aperture_shape, kernel_floor
 
     n = len(surfels)
@@ -182,6 +186,21 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         splats[k, FLOOR] = floor
         splats[k, [RAD, REACH, MIX]] = radius, support, mix
         splats[k, [GZX, GZY]] = -np.array([tu[k, 2], tv[k, 2]]) @ np.linalg.inv(J)
+        if color_grad is not None and np.trace(Sq) > 0:
+            # the node's tangent frame in world space, from its normal (as the hierarchy's)
+            nw = surfels.normals[k].astype(np.float64)
+            e = np.zeros(3)
+            e[np.argmin(np.abs(nw))] = 1.0
+            uw = np.cross(nw, e)
+            uw /= np.linalg.norm(uw)
+            vw = np.cross(nw, uw)
+            g = np.asarray(color_grad[k], np.float64).reshape(3, 2)
+            # Cov(colour, world position) in the tangent plane, then on the screen
+            cov_cs = (g @ np.stack([uw, vw])) @ G.T  # (3 channels, 2 screen axes)
+            if gain is not None:
+                cov_cs = cov_cs * np.asarray(gain[k], np.float64)[:, None]
+            slope = cov_cs @ np.linalg.inv(W + radius ** 2 / 4 * np.eye(2))
+            splats[k, [RX, RY, GX, GY, BX, BY]] = slope.reshape(6)
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
     return splats, bbox, visible
@@ -210,8 +229,8 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
     sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility).
     """
     from .raster.abuffer import OPAQUE
-    from .splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX,
-                                MY, RAD, REACH, RED, ZHI, ZLO)
+    from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
+                                GY, MIX, MX, MY, RAD, REACH, RED, RX, RY, ZHI, ZLO)
 
     blades = np.zeros((0, 2)) if blades is None else blades
 
@@ -238,7 +257,10 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             kern[q >= cutoff] = -1.0  # outside: no fragment (a tapered edge may be 0 inside)
         for i, j in zip(*np.nonzero(kern > 0 if s[RAD] != 0 else kern >= 0)):
             w = s[AMP] * kern[i, j]
-            frag = [w, w * s[RED], w * s[GREEN], w * s[BLUE], w * s[ALPHA], w * s[DEPTH],
+            # an LOD node's colour slope (zero for a surfel), clamped at black
+            d = np.array([x0 + j + 0.5 - s[MX], y0 + i + 0.5 - s[MY]])
+            rgb = np.maximum(s[[RED, GREEN, BLUE]] + s[[[RX, RY], [GX, GY], [BX, BY]]] @ d, 0.0)
+            frag = [w, w * rgb[0], w * rgb[1], w * rgb[2], w * s[ALPHA], w * s[DEPTH],
                     w if s[ALPHA] >= OPAQUE else 0.0, s[ZLO], s[ZHI]]
             _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
             fragments += 1

@@ -166,7 +166,8 @@ def test_show_lod_frame_matches_cpu(scene):
 def test_lod_cut_and_projection_match_cpu(scene):
     """The cut (same nodes, same order, same gathered arrays) and the projected splats."""
     from dofsplat.backends import cuda as bc
-    from dofsplat.render import lod_tree, project, select, shade_surfels
+    from dofsplat.backends.cpu import shade_splats
+    from dofsplat.render import lod_tree, project, select
 
     surfels, camera = scene
     settings = ds.RenderSettings()
@@ -174,16 +175,20 @@ def test_lod_cut_and_projection_match_cpu(scene):
     tree = lod_tree(surfels)
     cpu_src = select(surfels, camera, lens, settings, tree)
     gpu_src = bc.select_cuda(surfels, bc.device_scene(surfels, tree), tree, camera, lens, settings)
-    for name in ("positions", "normals", "colors", "opacity", "ru", "rv", "area", "lod_cov", "level"):
+    for name in ("positions", "normals", "colors", "opacity", "ru", "rv", "area", "lod_cov",
+                 "color_grad", "level"):
         np.testing.assert_array_equal(getattr(gpu_src, name).copy_to_host(), getattr(cpu_src, name),
                                       err_msg=name)
 
-    rgb = shade_surfels(cpu_src, camera, settings)
-    gpu_rgb = bc.shade_cuda(gpu_src, camera, settings)
+    rgb, gain = shade_splats(cpu_src, camera, settings)
+    gpu_rgb, gpu_gain = bc.shade_cuda(gpu_src, camera, settings)
     np.testing.assert_allclose(gpu_rgb.copy_to_host(), rgb, rtol=1e-6, atol=1e-7)
+    assert gain.shape == (cpu_src.size, 3)  # shaded nodes: their colour gradients are too
+    np.testing.assert_allclose(gpu_gain.copy_to_host(), gain, rtol=1e-6, atol=1e-7)
 
-    splats, bbox, visible = project(cpu_src, rgb, camera, lens, settings)
-    g_splats, g_bbox, g_visible = bc.project_cuda(gpu_src, bc._upload(rgb), camera, lens, settings)
+    splats, bbox, visible = project(cpu_src, rgb, camera, lens, settings, gain=gain)
+    g_splats, g_bbox, g_visible = bc.project_cuda(gpu_src, bc._upload(rgb), camera, lens, settings,
+                                                  bc._upload(gain))
     g_visible = g_visible.copy_to_host()
     np.testing.assert_array_equal(g_visible, visible)
     np.testing.assert_array_equal(g_bbox.copy_to_host()[visible], bbox[visible])

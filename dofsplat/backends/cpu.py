@@ -38,13 +38,13 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     times["select_ms"] = _ms(t)
 
     t = time.perf_counter()
-    rgb = shade_surfels(source, camera, settings)
+    rgb, gain = shade_splats(source, camera, settings)
     times["shade_ms"] = _ms(t)
 
     if parts is None:
-        image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings)
+        image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings, gain)
     else:
-        image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings)
+        image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings, gain)
     for stage in ("project_ms", "bin_ms", "front_ms", "raster_ms"):
         times[stage] = frame_stats.pop(stage)
     times["total_ms"] = _ms(t_start)
@@ -62,10 +62,11 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     return RenderResult(image=image, depth=depth, weight=weight, stats=stats)
 
 
-def draw(source, rgb, camera: Camera, lens, settings: RenderSettings):
+def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None):
     """Project, bin and rasterise one view of the splats: (image, depth, weight, stats)."""
     t = time.perf_counter()
-    splats, bbox, visible = project(source, rgb, camera, lens, settings, workspace=_workspace())
+    splats, bbox, visible = project(source, rgb, camera, lens, settings, workspace=_workspace(),
+                                    gain=gain)
     project_ms = _ms(t)
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings)
@@ -78,7 +79,7 @@ def draw(source, rgb, camera: Camera, lens, settings: RenderSettings):
     return image, depth, weight, stats
 
 
-def draw_parts(source, rgb, parts, settings: RenderSettings):
+def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
     """The lens's parts (``splat/subaperture.py``), each ``draw``n from its own camera with
     the residual blur, averaged: (image, depth, weight, stats summed over the parts;
     splats_rendered is the mean per part). depth is the nearest any part saw, as the
@@ -90,7 +91,7 @@ def draw_parts(source, rgb, parts, settings: RenderSettings):
     total: dict = {}
     share = np.float32(1.0 / len(parts.cameras))
     for part_camera in parts.cameras:
-        im, dp, wt, stats = draw(source, rgb, part_camera, parts.residual, settings)
+        im, dp, wt, stats = draw(source, rgb, part_camera, parts.residual, settings, gain)
         image += im * share  # float32 sums of K <= 64 frames: rounding far below 1/255
         weight += wt * share
         np.minimum(depth, dp, out=depth)
@@ -130,22 +131,35 @@ def shade_surfels(source, camera: Camera, settings: RenderSettings) -> np.ndarra
 
     source: a ``SplatSource`` (or ``Surfels``)
     """
+    return shade_splats(source, camera, settings)[0]
+
+
+def shade_splats(source, camera: Camera, settings: RenderSettings):
+    """``shade_surfels``, and the shading's factor on each colour channel, (S, 3) float32,
+    which the projection applies to the LOD nodes' colour gradients; (0, 3) (a factor of 1)
+    unshaded or without gradients."""
     from ..splat.shade import shade_fast
 
+    none = np.ones((0, 3), np.float32)
     if settings.shading == "none":
-        return source.colors
+        return source.colors, none
+    grad = getattr(source, "color_grad", None)
+    if grad is None or grad.shape[0] == 0 or settings.show_lod:
+        return shade_fast(source.positions, source.normals, source.colors, source.material,
+                          camera, settings.lights, two_sided=not settings.cull_backfaces), none
     return shade_fast(source.positions, source.normals, source.colors, source.material,
-                      camera, settings.lights, two_sided=not settings.cull_backfaces)
+                      camera, settings.lights, two_sided=not settings.cull_backfaces, gain=True)
 
 
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
-            lod_cov: np.ndarray | None = None, workspace: dict | None = None):
+            lod_cov: np.ndarray | None = None, workspace: dict | None = None, gain=None):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
 
     source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
     ``lod_cov`` (N, 6), if given, is the LOD filter's world covariance per surfel);
     workspace: a dict whose arrays the splats may reuse (``render`` keeps one per thread),
-    else they are new
+    else they are new; gain: (S, 3) the shading's factor on the colour (``shade_splats``),
+    applied to the nodes' colour gradients, or None for 1
     """
     from ..splat.project import N_FIELDS, project_splats
     from ..splat.source import from_surfels
@@ -164,8 +178,14 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
     visible = _buffer(workspace, "visible", (n,), np.bool_)
     disc, blades, _, moments = aperture_shape(lens, settings)
+    color_grad = source.color_grad
+    if settings.show_lod:  # the level's flat colour
+        color_grad = np.zeros((0, 6), np.float32)
+    if gain is None:
+        gain = np.ones((0, 3), np.float32)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
-                   np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
+                   np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov,
+                   color_grad, gain, view,
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),

@@ -53,9 +53,9 @@ from ..raster.abuffer import (FRONT_FIELDS, MAX_SURFACES, N_ACC, RESOLVE_SCRATCH
                               splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, DEPTH, FLOOR, GREEN, MIX, MX, MY,
-                             N_FIELDS, N_RASTER_FIELDS, RAD, REACH,
-                             RED, X0, X1, ZHI, ZLO, project_splat)
+from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
+                             GY, MIX, MX, MY, N_FIELDS, N_RASTER_FIELDS, RAD, REACH, RED, RX, RY,
+                             X0, X1, ZHI, ZLO, project_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
 
@@ -206,15 +206,16 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, count, center, boun
 
 @cuda.jit
 def _gather(nodes, order, start, count, position, normal, color, opacity, area, sigma_r2,
-            lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight, out_pos,
-            out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov, out_level):
+            lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
+            out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
+            out_grad, out_level):
     """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row)."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
         _gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                      sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
-                      s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
-                      out_area, out_cov, out_level)
+                      sigma_r2, lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru,
+                      s_rv, s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
+                      out_rv, out_area, out_cov, out_grad, out_level)
 
 
 @cuda.jit
@@ -228,21 +229,21 @@ def _level_colors(level, palette, out):
 
 @cuda.jit
 def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess, two_sided,
-           out):
+           out, gain):
     k = cuda.grid(1)
     if k < positions.shape[0]:
         _shade_splat(k, positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shininess,
-                     two_sided, out)
+                     two_sided, out, gain)
 
 
 @cuda.jit
-def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
-             by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
-             exact_norm, floor, disc, blades, moments, out, bbox, visible):
+def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, color_grad, gain,
+             view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+             cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
-        _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+        _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
+                       color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                        cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                        visible)
 
@@ -358,7 +359,7 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
     splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
     # the raster's fields only: 256 x 19 x 8 bytes = 38 KB of the 48 KB a block may hold
     batch = cuda.shared.array((PIXELS, N_RASTER_FIELDS), numba.float64)
-    rows = cuda.shared.array((PIXELS, 2), numba.int32)
+    rows = cuda.shared.array((PIXELS, 3), numba.int32)
     counters = cuda.shared.array(2, numba.int64)
     acc = cuda.local.array((1, MAX_SURFACES, N_ACC), numba.float64)
     cnt = cuda.local.array(1, numba.int64)
@@ -382,6 +383,7 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
                 batch[tid, f] = splats[k, f]
             rows[tid, 0] = bbox[k, 2]
             rows[tid, 1] = bbox[k, 3]
+            rows[tid, 2] = k  # an LOD node's colour slope is read from the splat itself
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
@@ -396,10 +398,13 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
                                               batch[s, RAD], c22 / det, -c12 / det, c11 / det,
                                               batch[s, MIX], blades, table, u_c)
                         if wk > 0.0:
+                            k = rows[s, 2]
                             overflows += _insert_fragment(
-                                acc, cnt, 0, batch[s, AMP] * wk, batch[s, RED], batch[s, GREEN],
-                                batch[s, BLUE], batch[s, ALPHA], batch[s, DEPTH], batch[s, ZLO],
-                                batch[s, ZHI])
+                                acc, cnt, 0, batch[s, AMP] * wk,
+                                max(batch[s, RED] + splats[k, RX] * dx + splats[k, RY] * dy, 0.0),
+                                max(batch[s, GREEN] + splats[k, GX] * dx + splats[k, GY] * dy, 0.0),
+                                max(batch[s, BLUE] + splats[k, BX] * dx + splats[k, BY] * dy, 0.0),
+                                batch[s, ALPHA], batch[s, DEPTH], batch[s, ZLO], batch[s, ZHI])
                             frags += 1
                 elif rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0:
                     mx, my = batch[s, MX], batch[s, MY]
@@ -407,12 +412,16 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
                     j0, j1 = _row_pixel_range(i, mx, my, c11, c12, c22, cutoff,
                                               int(batch[s, X0]), int(batch[s, X1]))
                     if j0 <= j <= j1:
-                        q = _exponent(j + 0.5 - mx, i + 0.5 - my, c11, c12, c22)
+                        dx, dy = j + 0.5 - mx, i + 0.5 - my
+                        q = _exponent(dx, dy, c11, c12, c22)
                         if q < cutoff:
+                            k = rows[s, 2]
                             overflows += _insert_fragment(
-                                acc, cnt, 0, batch[s, AMP] * (math.exp(-q) - batch[s, FLOOR]), batch[s, RED],
-                                batch[s, GREEN], batch[s, BLUE], batch[s, ALPHA], batch[s, DEPTH],
-                                batch[s, ZLO], batch[s, ZHI])
+                                acc, cnt, 0, batch[s, AMP] * (math.exp(-q) - batch[s, FLOOR]),
+                                max(batch[s, RED] + splats[k, RX] * dx + splats[k, RY] * dy, 0.0),
+                                max(batch[s, GREEN] + splats[k, GX] * dx + splats[k, GY] * dy, 0.0),
+                                max(batch[s, BLUE] + splats[k, BX] * dx + splats[k, BY] * dy, 0.0),
+                                batch[s, ALPHA], batch[s, DEPTH], batch[s, ZLO], batch[s, ZHI])
                             frags += 1
         cuda.syncthreads()
     if inside:
@@ -496,7 +505,7 @@ def _array_key(surfels) -> tuple:
 
 
 TREE_ARRAYS = ("order", "start", "count", "center", "bound", "extent", "position", "normal",
-               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov")
+               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "color_grad")
 
 
 def device_scene(surfels, tree=None) -> DeviceScene:
@@ -575,15 +584,17 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
         ru=_WS.get("src.ru", (n,), np.float32), rv=_WS.get("src.rv", (n,), np.float32),
         area=_WS.get("src.area", (n,), np.float32),
         lod_cov=_WS.get("src.lod_cov", (n, 6), np.float32),
+        color_grad=_WS.get("src.color_grad", (n, 6), np.float32),
         level=_WS.get("src.level", (n,), np.int8), material=surfels.material)
     if n:
         src = scene.source
         _gather[_blocks(n), THREADS](
             nodes, d["order"], d["start"], d["count"], d["position"], d["normal"], d["color"],
-            d["opacity"], d["area"], d["sigma_r2"], d["lod_cov"], src.positions,
+            d["opacity"], d["area"], d["sigma_r2"], d["lod_cov"], d["color_grad"], src.positions,
             src.normals, src.colors, src.opacity, scene.raw["tangent"], src.ru,
-            scene.raw["radius_v"], scene.raw["weight"], out.positions, out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv,
-            out.area, out.lod_cov, out.level)
+            scene.raw["radius_v"], scene.raw["weight"], out.positions, out.normals, out.colors,
+            out.opacity, out.tangents, out.ru, out.rv, out.area, out.lod_cov, out.color_grad,
+            out.level)
     if settings.show_lod:
         colors = _WS.get("src.level_colors", (n, 3), np.float32)
         if n:
@@ -602,24 +613,28 @@ def _palette(palette: np.ndarray):
 
 
 def shade_cuda(source: SplatSource, camera, settings):
-    """Per-splat Phong on the GPU: (S, 3) float32 (backends.cpu.shade_surfels' twin)."""
+    """Per-splat Phong on the GPU: (S, 3) float32 and the factor on each colour channel,
+    (S, 3) or (0, 3) (backends.cpu.shade_splats' twin)."""
     from ..splat.shade import light_arrays
 
+    none = _WS.get("gain.none", (0, 3), np.float32)
     if settings.shading == "none":
-        return source.colors
+        return source.colors, none
     n = source.size
     out = _WS.get("rgb", (n, 3), np.float32)
+    with_gain = source.color_grad.shape[0] > 0 and not settings.show_lod
+    gain = _WS.get("gain", (n, 3), np.float32) if with_gain else none
     if n:
         kinds, vecs, cols = light_arrays(tuple(settings.lights), camera)
         m = source.material
         _shade[_blocks(n), THREADS](
             source.positions, source.normals, source.colors, _upload(np.asarray(camera.eye, np.float64)),
             _upload(kinds), _upload(vecs), _upload(cols), float(m.ambient), float(m.diffuse),
-            float(m.specular), float(m.shininess), not settings.cull_backfaces, out)
-    return out
+            float(m.specular), float(m.shininess), not settings.cull_backfaces, out, gain)
+    return out, gain
 
 
-def project_cuda(source: SplatSource, rgb, camera, lens, settings):
+def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
     """EWA projection with the DOF blur on the GPU: splats, bbox, visible (backends.cpu.project's twin)."""
     from ..frame import aperture_shape, coc_coefficients, kernel_floor
 
@@ -634,9 +649,14 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings):
         cutoff = float(settings.cutoff)
         floor = kernel_floor(settings)
         disc, blades, _, moments = aperture_shape(lens, settings)
+        color_grad = source.color_grad
+        if settings.show_lod:  # the level's flat colour
+            color_grad = _WS.get("grad.none", (0, 6), np.float32)
+        if gain is None:
+            gain = _WS.get("gain.none", (0, 3), np.float32)
         _project[_blocks(n), THREADS](
             source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
-            rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
+            rgb, source.opacity, source.lod_cov, color_grad, gain, view_t, ax, bx, ay, by,
             float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
             float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
             bool(settings.exact_normalization), floor, disc, _upload(blades), _upload(moments),
@@ -764,10 +784,10 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
     clock.mark("start")
     source = select_cuda(surfels, scene, tree, camera, lens, settings, parts)
     clock.mark("select_ms")
-    rgb = shade_cuda(source, camera, settings)
+    rgb, gain = shade_cuda(source, camera, settings)
     clock.mark("shade_ms")
     if parts is None:
-        image, depth, weight, counts = _draw(source, rgb, camera, blur_lens, settings, clock)
+        image, depth, weight, counts = _draw(source, rgb, camera, blur_lens, settings, clock, gain)
     else:
         # the lens's parts (splat/subaperture.py), each from its own camera, averaged
         h, w = camera.height, camera.width
@@ -780,7 +800,7 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
         counts = np.zeros(4, np.int64)
         share = 1.0 / len(parts.cameras)
         for part_camera in parts.cameras:
-            im, dp, wt, c = _draw(source, rgb, part_camera, parts.residual, settings, clock)
+            im, dp, wt, c = _draw(source, rgb, part_camera, parts.residual, settings, clock, gain)
             _accumulate[_blocks(h * w), THREADS](image.reshape(h * w, 4), depth.reshape(h * w),
                                                  weight.reshape(h * w), im.reshape(h * w, 4),
                                                  dp.reshape(h * w), wt.reshape(h * w), share)
@@ -805,13 +825,13 @@ def render_frame(surfels, camera, lens, settings, hierarchy=None) -> DeviceFrame
     return DeviceFrame(image=image, depth=depth, weight=weight, stats=stats)
 
 
-def _draw(source, rgb, camera, lens, settings, clock):
+def _draw(source, rgb, camera, lens, settings, clock, gain=None):
     """Project, bin and rasterise one view (``backends.cpu.draw``'s twin): image, depth,
     weight (device buffers that the next view overwrites) and (splats rendered, fragments,
     overflows, tile pairs)."""
     from ..frame import merge_parameters
 
-    splats, bbox, visible = project_cuda(source, rgb, camera, lens, settings)
+    splats, bbox, visible = project_cuda(source, rgb, camera, lens, settings, gain)
     clock.mark("project_ms")
     offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
     clock.mark("bin_ms")

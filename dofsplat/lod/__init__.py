@@ -55,14 +55,15 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
         colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
         tangents=np.empty((n if ell else 0, 3), np.float32), ru=np.empty(n, np.float32),
         rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
-        lod_cov=np.empty((n, 6), np.float32), level=np.empty(n, np.int8),
+        lod_cov=np.empty((n, 6), np.float32), color_grad=np.empty((n, 6), np.float32),
+        level=np.empty(n, np.int8),
         material=surfels.material)
     gather_splats(nodes, tree.order, tree.start, tree.count, tree.position, tree.normal,
                   tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov,
-                  surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
+                  tree.color_grad, surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
                   surfels.tangent if ell else np.zeros((0, 3), np.float32), surfels.radius,
                   surfels.radius_v if ell else empty,
                   surfels.weight if surfels.weight is not None else empty, out.positions,
                   out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv, out.area,
-                  out.lod_cov, out.level)
+                  out.lod_cov, out.color_grad, out.level)
     return out

@@ -32,6 +32,11 @@ and 6.2; docs/maths.md, "Level of detail"):
   filter that turns the leaf basis V^r into the leaf convention applied to the node's
   own extent, V^l = V^r + V^{q,l} = L^2/4 along each axis. It is anisotropic (the median
   split makes 2:1 nodes on every other level) and zero at the leaves;
+* ``color_grad``: the node's colour gradient, the area-weighted covariance of its surfels'
+  colours with their positions along the two axes of its tangent frame (``tangent_frame``
+  of its normal): where the box-filtered mean colour loses a texture's edges, the
+  projection turns this into the colour's slope across the splat (docs/maths.md, "A node's
+  colour gradient"); zero at the leaves;
 * ``level``: the node's height (0 at the leaves), for ``--show-lod``.
 """
 
@@ -47,12 +52,13 @@ import numba
 import numpy as np
 
 from ..errors import DofsplatError
+from ..splat.ewa import tangent_frame
 from ..surfels import Surfels
 
 # a node whose unit normals spread by more than this in one component (1.4 ~ sqrt 2: normals
 # about 90 degrees apart) is split by normal, not by position (docs/maths.md)
 NORMAL_SPREAD = 1.4
-FORMAT_VERSION = 4  # bump when the build or the stored arrays change: old files are rebuilt
+FORMAT_VERSION = 5  # bump when the build or the stored arrays change: old files are rebuilt
 
 
 @dataclass
@@ -74,6 +80,9 @@ class Hierarchy:
     sigma_r2: (M,) float32, leaf basis variance V^r, world units^2
     lod_cov:  (M, 6) float32, the level's low-pass filter V^{q,l}, world covariance
               (xx, xy, xz, yy, yz, zz), world units^2
+    color_grad: (M, 6) float32, Cov(colour, position . t) per channel and tangent axis
+              (r.u, r.v, g.u, g.v, b.u, b.v; colour x world units), t = (u, v) the node's
+              ``tangent_frame``
     level:    (M,) int8, height above the leaves
     fingerprint: hash of the surfel arrays the tree was built from
     """
@@ -92,6 +101,7 @@ class Hierarchy:
     area: np.ndarray
     sigma_r2: np.ndarray
     lod_cov: np.ndarray
+    color_grad: np.ndarray
     level: np.ndarray
     fingerprint: str
 
@@ -221,16 +231,18 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
     area = np.empty(m_nodes, np.float32)
     sigma_r2 = np.empty(m_nodes, np.float32)
     lod_cov = np.empty((m_nodes, 6), np.float32)
+    color_grad = np.empty((m_nodes, 6), np.float32)
     level = np.empty(m_nodes, np.int8)
     _node_spheres(order, start, count, positions, ru, rv, center, extent)
     bound[:] = extent
     _aggregate(order, start, count, positions, surfels.normals, ru, rv, weight,
                surfels.colors, surfels.opacity, center, bound, position, normal, cone,
-               color, opacity, area, sigma_r2, lod_cov, level)
+               color, opacity, area, sigma_r2, lod_cov, color_grad, level)
     tree = Hierarchy(order=order, start=start, count=count, center=center, bound=bound,
                      extent=extent,
                      position=position, normal=normal, cone=cone, color=color,
-                     opacity=opacity, area=area, sigma_r2=sigma_r2, lod_cov=lod_cov, level=level,
+                     opacity=opacity, area=area, sigma_r2=sigma_r2, lod_cov=lod_cov,
+                     color_grad=color_grad, level=level,
                      fingerprint=fingerprint(surfels))
     tree.build_seconds = time.perf_counter() - t0  # informational, not stored
     return tree
@@ -349,7 +361,7 @@ def _node_spheres(order, start, count, positions, ru, rv, center, bound):
 @numba.njit(cache=True, nogil=True)
 def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, alpha,
                center, bound, position, normal, cone, color, opacity, area, sigma_r2, lod_cov,
-               level):
+               color_grad, level):
     """Fill the node arrays, children before parents (reverse preorder)."""
     m_nodes = count.shape[0]
     # geometric area of each node (r_u r_v summed, no normalisation weights): weights sigma_r2
@@ -357,6 +369,9 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
     # area-weighted mean position and covariance of the node's surfels, in float64
     mean = np.empty((m_nodes, 3), np.float64)
     cov = np.empty((m_nodes, 6), np.float64)
+    # area-weighted mean colour and colour-position covariance (channel x world axis)
+    cmean = np.empty((m_nodes, 3), np.float64)
+    ccov = np.empty((m_nodes, 9), np.float64)
     for i in range(m_nodes - 1, -1, -1):
         m = count[i]
         if m == 1:
@@ -373,9 +388,13 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
             sigma_r2[i] = 0.25 * a_geo
             for d in range(3):
                 mean[i, d] = positions[k, d]
+                cmean[i, d] = colors[k, d]
             for d in range(6):
                 cov[i, d] = 0.0
                 lod_cov[i, d] = 0.0
+                color_grad[i, d] = 0.0
+            for d in range(9):
+                ccov[i, d] = 0.0
             level[i] = 0
             continue
         l = i + 1
@@ -410,6 +429,14 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
         for d in range(6):
             lod_cov[i, d] = 3.0 * cov[i, d]
         level[i] = max(level[l], level[r]) + 1
+        for c in range(3):
+            cmean[i, c] = fl * cmean[l, c] + fr * cmean[r, c]
+            el, er = cmean[l, c] - cmean[i, c], cmean[r, c] - cmean[i, c]
+            ccov[i, 3 * c] = fl * (ccov[l, 3 * c] + el * d0l) + fr * (ccov[r, 3 * c] + er * d0r)
+            ccov[i, 3 * c + 1] = fl * (ccov[l, 3 * c + 1] + el * d1l) \
+                + fr * (ccov[r, 3 * c + 1] + er * d1r)
+            ccov[i, 3 * c + 2] = fl * (ccov[l, 3 * c + 2] + el * d2l) \
+                + fr * (ccov[r, 3 * c + 2] + er * d2r)
 
         # normal: area-weighted mean; the cone must contain both children's cones
         nx = fl * normal[l, 0] + fr * normal[r, 0]
@@ -429,6 +456,15 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
                 wide = max(wide, ang)
             # float32 storage: round the angle up a little so the cone stays conservative
             cone[i] = min(math.pi, wide * (1.0 + 1e-6) + 1e-6)
+
+        # the colour gradient in the node's tangent frame, from its normal as stored (float32),
+        # so that the projection derives the same frame
+        ux, uy, uz, vx, vy, vz = tangent_frame(np.float64(normal[i, 0]), np.float64(normal[i, 1]),
+                                               np.float64(normal[i, 2]))
+        for c in range(3):
+            gx, gy, gz = ccov[i, 3 * c], ccov[i, 3 * c + 1], ccov[i, 3 * c + 2]
+            color_grad[i, 2 * c] = gx * ux + gy * uy + gz * uz
+            color_grad[i, 2 * c + 1] = gx * vx + gy * vy + gz * vz
 
         # the sphere (centred on the node's bounding box, _node_spheres) must also contain
         # both children's spheres; the extra slack covers the float32 rounding of centres

@@ -26,8 +26,9 @@ import numpy as np
 
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
 from ..splat.ewa import exponent, row_pixel_range, row_span, row_start
-from ..splat.project import (ALPHA, AMP, BLUE, C11, C12, C22, COC, DEPTH, F11, F12, F22, FLOOR,
-                             GREEN, GZX, GZY, MIX, MX, MY, RAD, RED, X0, X1, ZHI, ZLO)
+from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH, F11, F12, F22,
+                             FLOOR, GREEN, GX, GY, GZX, GZY, MIX, MX, MY, RAD, RED, RX, RY, X0,
+                             X1, ZHI, ZLO)
 
 TILE = ROW  # 16: the aperture kernel's SIMD rows (splat/bokeh.py) are a tile wide
 MAX_SURFACES = 8
@@ -507,6 +508,9 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             mx, my = splats[k, MX], splats[k, MY]
             c11, c12, c22 = splats[k, C11], splats[k, C12], splats[k, C22]
             r, g, b, a = splats[k, RED], splats[k, GREEN], splats[k, BLUE], splats[k, ALPHA]
+            # an LOD node's colour changes across it (ewa.color_slope; 0 for a surfel)
+            rx, ry, gx, gy = splats[k, RX], splats[k, RY], splats[k, GX], splats[k, GY]
+            bx, by = splats[k, BX], splats[k, BY]
             d, zlo, zhi = splats[k, DEPTH], splats[k, ZLO], splats[k, ZHI]
             floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
@@ -534,16 +538,18 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     e = (i - ia) * TILE + (ja - px0)
                     dy = i + 0.5 - my
                     for j in range(ja, jb + 1):
+                        dx = j + 0.5 - mx
                         if round_aperture:
                             wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
                         else:
-                            dx = j + 0.5 - mx
                             wk = aperture_value(c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy,
                                                 w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy,
                                                 dx, dy, radius, mix, blades, table, u_c, c11, w11)
                         if wk > 0.0:
-                            overflows += insert_fragment(acc, cnt, p, amp * wk, r, g, b, a, d,
-                                                         zlo, zhi)
+                            overflows += insert_fragment(
+                                acc, cnt, p, amp * wk, max(r + rx * dx + ry * dy, 0.0),
+                                max(g + gx * dx + gy * dy, 0.0), max(b + bx * dx + by * dy, 0.0),
+                                a, d, zlo, zhi)
                             frags += 1
                         p += 1
                         e += 1
@@ -557,15 +563,21 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 # exponent and kernel value by forward differences along the row (ewa.row_start)
                 q, dq, e, f = row_start(ja, i, mx, my, c11, c12, c22)
                 p = (i - py0) * TILE + (ja - px0)
+                # the colour along the row, by forward differences too
+                dx, dy = ja + 0.5 - mx, i + 0.5 - my
+                rr, gg, bb = r + rx * dx + ry * dy, g + gx * dx + gy * dy, b + bx * dx + by * dy
                 for _ in range(ja, jb + 1):
                     if q < cutoff:
-                        overflows += insert_fragment(acc, cnt, p, amp * (e - floor), r, g, b, a, d, zlo,
-                                                     zhi)
+                        overflows += insert_fragment(acc, cnt, p, amp * (e - floor), max(rr, 0.0),
+                                                     max(gg, 0.0), max(bb, 0.0), a, d, zlo, zhi)
                         frags += 1
                     q += dq
                     dq += c11
                     e *= f
                     f *= step2
+                    rr += rx
+                    gg += gx
+                    bb += bx
                     p += 1
         res, order, scratch = ress[me], orders[me], scratches[me]
         for i in range(py0, py1 + 1):

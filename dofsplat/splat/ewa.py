@@ -52,6 +52,58 @@ def tangent_from_normal(nx, ny, nz):
 
 
 @shared
+def tangent_frame(nx, ny, nz):
+    """(u, v) as a 6-tuple: ``tangent_from_normal`` and n x u, a right-handed tangent frame."""
+    ux, uy, uz = tangent_from_normal(nx, ny, nz)
+    return ux, uy, uz, ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+
+
+@shared
+def color_slope(p_world, n_world, grad, gain, view, ax, ay, w11, w12, w22, radius):
+    """A node's colour change per pixel, (r_x, r_y, g_x, g_y, b_x, b_y), for its kernel.
+
+    grad: 6-tuple, the node's Cov(colour, position . t) in its world tangent frame
+    (``lod/hierarchy.py``'s color_grad: r.u, r.v, g.u, g.v, b.u, b.v); gain: the shading's
+    3-tuple factor on the colour (Phong is linear in it); W = (w11, w12, w22) the kernel's
+    Gaussian variance and |radius| its aperture disc's radius (0 for none), pixels.
+
+    The node stands for surfels spread about its mean, each splatted with the kernel; the
+    colour they give at an offset d from the mean is the mean colour plus the colour
+    gradient times the expected surfel offset given d, which for Gaussians is
+    Cov(surfel, d) W_total^-1 d (docs/maths.md, "A node's colour gradient"): the slope is
+    Cov(colour, screen position) W_total^-1, W_total = W + (R^2 / 4) I the kernel's
+    covariance (a disc of radius R has variance R^2 / 4 per axis).
+    """
+    px = view[0] * p_world[0] + view[1] * p_world[1] + view[2] * p_world[2] + view[3]
+    py = view[4] * p_world[0] + view[5] * p_world[1] + view[6] * p_world[2] + view[7]
+    pz = view[8] * p_world[0] + view[9] * p_world[1] + view[10] * p_world[2] + view[11]
+    ux, uy, uz, vx, vy, vz = tangent_frame(n_world[0], n_world[1], n_world[2])
+    # the tangent axes in camera space and their images on the screen
+    cux = view[0] * ux + view[1] * uy + view[2] * uz
+    cuy = view[4] * ux + view[5] * uy + view[6] * uz
+    cuz = view[8] * ux + view[9] * uy + view[10] * uz
+    cvx = view[0] * vx + view[1] * vy + view[2] * vz
+    cvy = view[4] * vx + view[5] * vy + view[6] * vz
+    cvz = view[8] * vx + view[9] * vy + view[10] * vz
+    j11, j21 = jacobian_column(px, py, pz, cux, cuy, cuz, ax, ay)
+    j12, j22 = jacobian_column(px, py, pz, cvx, cvy, cvz, ax, ay)
+    extra = 0.25 * radius * radius
+    t11, t12, t22 = w11 + extra, w12, w22 + extra
+    inv = 1.0 / (t11 * t22 - t12 * t12)
+    i11, i12, i22 = t22 * inv, -t12 * inv, t11 * inv
+    # per channel: m = Cov(colour, screen position) = J (Cov . u, Cov . v), slope = W^-1 m
+    m0x = gain[0] * (j11 * grad[0] + j12 * grad[1])
+    m0y = gain[0] * (j21 * grad[0] + j22 * grad[1])
+    m1x = gain[1] * (j11 * grad[2] + j12 * grad[3])
+    m1y = gain[1] * (j21 * grad[2] + j22 * grad[3])
+    m2x = gain[2] * (j11 * grad[4] + j12 * grad[5])
+    m2y = gain[2] * (j21 * grad[4] + j22 * grad[5])
+    return (i11 * m0x + i12 * m0y, i12 * m0x + i22 * m0y,
+            i11 * m1x + i12 * m1y, i12 * m1x + i22 * m1y,
+            i11 * m2x + i12 * m2y, i12 * m2x + i22 * m2y)
+
+
+@shared
 def jacobian_column(px, py, pz, tx, ty, tz, ax, ay):
     """d(x_px, y_px)/ds along the camera-space tangent t at camera-space point p (pz < 0).
 

@@ -4,8 +4,9 @@ Output, one row per surfel in an (N, N_FIELDS) array (columns ``SPLAT_FIELDS``; 
 CPU, which halves a frame's largest array and leaves images unchanged to 98 dB):
 screen mean, conic (inverse variance), amplitude, z-range, depth, shaded colour, opacity,
 CoC radius, unclipped bbox columns, the aperture's radius and reach (splat/bokeh.py), the
-unblurred footprint's conic (the splat as a pinhole sees it, for the A-buffer's front pass)
-and its depth change per pixel (signed, x and y); an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
+unblurred footprint's conic (the splat as a pinhole sees it, for the A-buffer's front pass),
+its depth change per pixel (signed, x and y) and an LOD node's colour change per pixel
+(``ewa.color_slope``; zero for a surfel); an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
 inclusive) clipped to the image; and a visibility flag. A splat's fragment weight at pixel centre x is
 
     amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
@@ -21,17 +22,19 @@ import numba
 import numpy as np
 
 from .bokeh import aperture_mass, edge_mix
-from .ewa import kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
+from .ewa import color_slope, kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
 # the rasteriser reads the first N_RASTER_FIELDS (the CUDA backend keeps a batch of them in
-# shared memory); the front pass and the visibility read the rest too
+# shared memory) and the colour slope (read where it is not zero); the front pass and the
+# visibility read the rest too
 (MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, X0, X1, FLOOR, RAD,
- REACH, MIX, COC, F11, F12, F22, GZX, GZY) = range(25)
-N_FIELDS = 25
+ REACH, MIX, COC, F11, F12, F22, GZX, GZY, RX, RY, GX, GY, BX, BY) = range(31)
+N_FIELDS = 31
 N_RASTER_FIELDS = 19
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
                 "red", "green", "blue", "alpha", "x0", "x1", "floor", "aperture_radius_px",
-                "reach_px", "edge_mix", "coc_radius_px", "f11", "f12", "f22", "gz_x", "gz_y")
+                "reach_px", "edge_mix", "coc_radius_px", "f11", "f12", "f22", "gz_x", "gz_y",
+                "red_x", "red_y", "green_x", "green_y", "blue_x", "blue_y")
 
 # Kernels whose unclipped bounding box exceeds this many pixels are normalised analytically,
 # by 2 pi sqrt|W| (1 - e^-c) (Section 6.3); smaller ones by their exact sum over the pixel
@@ -41,8 +44,8 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
-                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, color_grad,
+                   gain, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                    z_margin, cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                    visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
@@ -50,15 +53,17 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
     (0, 3); ru, rv: (N,) disk radii; area: (N,) world area each surfel stands for; rgb (N, 3)
     shaded linear colour; alpha (N,) opacity; lod_cov: (N, 6) world covariances of the
-    LOD filter V^{q,l} (xx, xy, xz, yy, yz, zz) or (0, 6);
+    LOD filter V^{q,l} (xx, xy, xz, yy, yz, zz) or (0, 6); color_grad: (N, 6) the nodes'
+    colour gradients (``lod/hierarchy.py``) or (0, 6); gain: (N, 3) the shading's factor on
+    the colour (``splat/shade.py``) or (0, 3) for 1;
     view: (12,) rows of camera_from_world[:3]; the rest are scalars (see ewa.project_surfel).
     """
     n = positions.shape[0]
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     for k in numba.prange(n):
-        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
+                      color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                       cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                       visible)
 
@@ -66,8 +71,8 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
 # not inline="always": numba's inliner refuses a function with this many arguments
 # ("Calling a closure with *args"); LLVM inlines the call within the jitted loop anyway
 @numba.njit(cache=True, nogil=True)
-def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
+                  color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                   cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
     """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
     e^-c to taper LOD nodes' kernels, else 0; disc: draw the aperture's shape, a polygon of
@@ -145,6 +150,21 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     out[k, RAD] = radius
     out[k, REACH] = reach
     out[k, MIX] = mix
+    sl = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if node and color_grad.shape[0] == n:
+        gn = (1.0, 1.0, 1.0)
+        if gain.shape[0] == n:
+            gn = (np.float64(gain[k, 0]), np.float64(gain[k, 1]), np.float64(gain[k, 2]))
+        g = (np.float64(color_grad[k, 0]), np.float64(color_grad[k, 1]),
+             np.float64(color_grad[k, 2]), np.float64(color_grad[k, 3]),
+             np.float64(color_grad[k, 4]), np.float64(color_grad[k, 5]))
+        sl = color_slope(p, nn, g, gn, view_t, ax, ay, w11, w12, w22, abs(radius))
+    out[k, RX] = sl[0]
+    out[k, RY] = sl[1]
+    out[k, GX] = sl[2]
+    out[k, GY] = sl[3]
+    out[k, BX] = sl[4]
+    out[k, BY] = sl[5]
     bbox[k, 0] = cx0
     bbox[k, 1] = cx1
     bbox[k, 2] = cy0

@@ -20,6 +20,8 @@ class SplatSource(NamedTuple):
     area:      (S,) float32 the area each splat stands for, world units^2
     lod_cov:   (S, 6) float32 world covariance of the LOD low-pass filter V^{q,l}
                (xx, xy, xz, yy, yz, zz; world units^2; zeros for a surfel), or (0, 6)
+    color_grad: (S, 6) float32 an LOD node's colour gradient in its tangent frame
+               (``lod/hierarchy.py``; zeros for a surfel), or (0, 6)
     level:     (S,) int8 LOD level (0 = a surfel), or None without LOD
     material:  the model's Phong material
     """
@@ -33,6 +35,7 @@ class SplatSource(NamedTuple):
     rv: np.ndarray
     area: np.ndarray
     lod_cov: np.ndarray
+    color_grad: np.ndarray
     level: np.ndarray | None
     material: Material
 
@@ -55,4 +58,4 @@ def from_surfels(surfels: Surfels) -> SplatSource:
     return SplatSource(positions=surfels.positions, normals=surfels.normals,
                        colors=surfels.colors, opacity=surfels.opacity, tangents=tangents,
                        ru=ru, rv=rv, area=area.astype(np.float32), lod_cov=np.zeros((0, 6), np.float32),
-                       level=None, material=surfels.material)
+                       color_grad=np.zeros((0, 6), np.float32), level=None, material=surfels.material)
