@@ -161,7 +161,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     else they are new; gain: (S, 3) the shading's factor on the colour (``shade_splats``),
     applied to the nodes' colour gradients, or None for 1
     """
-    from ..splat.project import N_FIELDS, project_splats
+    from ..splat.project import N_FIELDS, project_splats, slope_splats
     from ..splat.source import from_surfels
 
     if isinstance(source, Surfels):
@@ -178,18 +178,16 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
     visible = _buffer(workspace, "visible", (n,), np.bool_)
     disc, blades, _, moments = aperture_shape(lens, settings)
-    color_grad = source.color_grad
-    if settings.show_lod:  # the level's flat colour
-        color_grad = np.zeros((0, 6), np.float32)
-    if gain is None:
-        gain = np.ones((0, 3), np.float32)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
-                   np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov,
-                   color_grad, gain, view,
+                   np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,
                    ax, bx, ay, by, near, camera.width, camera.height, coc_k, inv_focus,
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
                    kernel_floor(settings), disc, blades, moments, splats, bbox, visible)
+    if source.color_grad.shape[0] == n and not settings.show_lod:  # show_lod: flat colours
+        slope_splats(source.positions, source.normals, source.color_grad,
+                     np.ones((0, 3), np.float32) if gain is None else gain, view, ax, ay,
+                     splats, visible)
     return splats, bbox, visible
 
 

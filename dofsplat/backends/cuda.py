@@ -55,7 +55,7 @@ from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
                              GY, MIX, MX, MY, N_FIELDS, N_RASTER_FIELDS, RAD, REACH, RED, RX, RY,
-                             X0, X1, ZHI, ZLO, project_splat)
+                             X0, X1, ZHI, ZLO, project_splat, slope_splat)
 from ..splat.shade import shade_splat
 from ..splat.source import SplatSource
 
@@ -90,6 +90,7 @@ def device_twin(fn):
 
 
 _project_splat = device_twin(project_splat)
+_slope_splat = device_twin(slope_splat)
 _shade_splat = device_twin(shade_splat)
 _visit_node = device_twin(visit_node)
 _gather_splat = device_twin(gather_splat)
@@ -209,13 +210,16 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
             lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
             out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
             out_grad, out_level):
-    """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row)."""
+    """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row),
+    and its colour gradient (zero at the leaves; lod/__init__.py's np.take)."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
         _gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                      sigma_r2, lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru,
-                      s_rv, s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
-                      out_rv, out_area, out_cov, out_grad, out_level)
+                      sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                      s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                      out_area, out_cov, out_level)
+        for d in range(6):
+            out_grad[t, d] = color_grad[nodes[t], d]
 
 
 @cuda.jit
@@ -237,13 +241,20 @@ def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shini
 
 
 @cuda.jit
-def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, color_grad, gain,
-             view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-             cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
+def _slope(positions, normals, color_grad, gain, view_t, ax, ay, out, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
-        _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
-                       color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+        _slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible)
+
+
+@cuda.jit
+def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t, ax, bx, ay,
+             by, near, width, height, coc_k, inv_focus, cutoff, z_margin, cull_backfaces,
+             exact_norm, floor, disc, blades, moments, out, bbox, visible):
+    k = cuda.grid(1)
+    if k < positions.shape[0]:
+        _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                        cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                        visible)
 
@@ -649,18 +660,18 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
         cutoff = float(settings.cutoff)
         floor = kernel_floor(settings)
         disc, blades, _, moments = aperture_shape(lens, settings)
-        color_grad = source.color_grad
-        if settings.show_lod:  # the level's flat colour
-            color_grad = _WS.get("grad.none", (0, 6), np.float32)
-        if gain is None:
-            gain = _WS.get("gain.none", (0, 3), np.float32)
         _project[_blocks(n), THREADS](
             source.positions, source.normals, source.tangents, source.ru, source.rv, source.area,
-            rgb, source.opacity, source.lod_cov, color_grad, gain, view_t, ax, bx, ay, by,
+            rgb, source.opacity, source.lod_cov, view_t, ax, bx, ay, by,
             float(camera.frustum_lrbtn()[4]), camera.width, camera.height, float(coc_k),
             float(inv_focus), cutoff, float(settings.z_thickness), bool(settings.cull_backfaces),
             bool(settings.exact_normalization), floor, disc, _upload(blades), _upload(moments),
             splats, bbox, visible)
+        if source.color_grad.shape[0] == n and not settings.show_lod:  # show_lod: flat colours
+            if gain is None:
+                gain = _WS.get("gain.none", (0, 3), np.float32)
+            _slope[_blocks(n), THREADS](source.positions, source.normals, source.color_grad, gain,
+                                        view_t, ax, ay, splats, visible)
     return splats, bbox, visible
 
 

@@ -188,13 +188,12 @@ def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2,
               kappa, cull_backfaces, flags, dummy, 0)
 
 
-# not inline="always", like project_splat: numba's inliner refuses a function with this many
-# arguments; LLVM inlines it anyway. The CUDA backend compiles it as its device twin
-@numba.njit(cache=True, nogil=True)
+# inlined at numba's level, like project_splat; the CUDA backend compiles it as its device twin
+@numba.njit(cache=True, nogil=True, inline="always")
 def gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                 sigma_r2, lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
-                 s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
-                 out_area, out_cov, out_grad, out_level):
+                 sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
+                 out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area,
+                 out_cov, out_level):
     """Row t of the splat arrays: node nodes[t] (``gather_splats``; one GPU thread per row).
 
     s_tan, s_rv: (0, 3) and (0,) for circular surfels; s_weight: (0,) without weights.
@@ -215,7 +214,6 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
                 out_tan[t, d] = s_tan[k, d]
         for d in range(6):
             out_cov[t, d] = 0.0
-            out_grad[t, d] = 0.0
         out_level[t] = 0
     else:  # an inner node: its prefiltered attributes and LOD filter
         for d in range(3):
@@ -228,7 +226,6 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
                 out_tan[t, d] = 0.0  # derive the tangent from the normal
         for d in range(6):
             out_cov[t, d] = lod_cov[i, d]
-            out_grad[t, d] = color_grad[i, d]
         # the median split halves the count: the node's height is ceil(log2 count)
         h = 0
         m = count[i]
@@ -243,20 +240,19 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def gather_splats(nodes, order, start, count, position, normal, color, opacity, area,
-                  sigma_r2, lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru,
-                  s_rv, s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
-                  out_area, out_cov, out_grad, out_level):
+                  sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                  s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                  out_area, out_cov, out_level):
     """Fill the splat arrays (one row per selected node) from the tree and the surfels.
 
     A leaf is its surfel, unchanged; an inner node is a circular splat at its mean position
-    with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour, colour gradient
-    and LOD filter.
+    with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter.
     """
     for t in numba.prange(nodes.shape[0]):
         gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                     sigma_r2, lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru,
-                     s_rv, s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru,
-                     out_rv, out_area, out_cov, out_grad, out_level)
+                     sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+                     s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
+                     out_area, out_cov, out_level)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -44,8 +44,8 @@ EXACT_NORMALISATION_MAX_AREA = 16384
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, color_grad,
-                   gain, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view,
+                   ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                    z_margin, cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                    visible):
     """Fill ``out`` (N, N_FIELDS), ``bbox`` (N, 4) and ``visible`` (N,) for N surfels.
@@ -53,17 +53,15 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     positions, normals: (N, 3) float32 world; tangents: (N, 3) for elliptical surfels or
     (0, 3); ru, rv: (N,) disk radii; area: (N,) world area each surfel stands for; rgb (N, 3)
     shaded linear colour; alpha (N,) opacity; lod_cov: (N, 6) world covariances of the
-    LOD filter V^{q,l} (xx, xy, xz, yy, yz, zz) or (0, 6); color_grad: (N, 6) the nodes'
-    colour gradients (``lod/hierarchy.py``) or (0, 6); gain: (N, 3) the shading's factor on
-    the colour (``splat/shade.py``) or (0, 3) for 1;
+    LOD filter V^{q,l} (xx, xy, xz, yy, yz, zz) or (0, 6);
     view: (12,) rows of camera_from_world[:3]; the rest are scalars (see ewa.project_surfel).
     """
     n = positions.shape[0]
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     for k in numba.prange(n):
-        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
-                      color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                       cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                       visible)
 
@@ -71,8 +69,8 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
 # not inline="always": numba's inliner refuses a function with this many arguments
 # ("Calling a closure with *args"); LLVM inlines the call within the jitted loop anyway
 @numba.njit(cache=True, nogil=True)
-def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
-                  color_grad, gain, view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
+                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                   cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
     """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
     e^-c to taper LOD nodes' kernels, else 0; disc: draw the aperture's shape, a polygon of
@@ -150,23 +148,53 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     out[k, RAD] = radius
     out[k, REACH] = reach
     out[k, MIX] = mix
-    sl = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    if node and color_grad.shape[0] == n:
-        gn = (1.0, 1.0, 1.0)
-        if gain.shape[0] == n:
-            gn = (np.float64(gain[k, 0]), np.float64(gain[k, 1]), np.float64(gain[k, 2]))
-        g = (np.float64(color_grad[k, 0]), np.float64(color_grad[k, 1]),
-             np.float64(color_grad[k, 2]), np.float64(color_grad[k, 3]),
-             np.float64(color_grad[k, 4]), np.float64(color_grad[k, 5]))
-        sl = color_slope(p, nn, g, gn, view_t, ax, ay, w11, w12, w22, abs(radius))
+    for f in range(RX, BY + 1):
+        out[k, f] = 0.0  # a surfel's colour is flat; slope_splats sets the nodes'
+    bbox[k, 0] = cx0
+    bbox[k, 1] = cx1
+    bbox[k, 2] = cy0
+    bbox[k, 3] = cy1
+    visible[k] = True
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def slope_splats(positions, normals, color_grad, gain, view, ax, ay, out, visible):
+    """The LOD nodes' colour slopes (fields RX..BY, ``ewa.color_slope``) of splats that
+    ``project_splats`` filled: color_grad (N, 6) the nodes' colour gradients
+    (``lod/hierarchy.py``; zero rows for surfels), gain (N, 3) the shading's factor on the
+    colour (``splat/shade.py``) or (0, 3) for 1.
+
+    A pass of its own: in project_splat's loop the extra arrays cost the projection of every
+    frame 60 % more (bench/RESULTS.md), with or without nodes."""
+    view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
+              view[8], view[9], view[10], view[11])
+    for k in numba.prange(positions.shape[0]):
+        slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible)
+
+
+@numba.njit(cache=True, nogil=True)
+def slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible):
+    """Splat k of ``slope_splats``; shared with the CUDA backend, one thread per splat."""
+    if not visible[k]:
+        return
+    g = (np.float64(color_grad[k, 0]), np.float64(color_grad[k, 1]), np.float64(color_grad[k, 2]),
+         np.float64(color_grad[k, 3]), np.float64(color_grad[k, 4]), np.float64(color_grad[k, 5]))
+    if g[0] == 0.0 and g[1] == 0.0 and g[2] == 0.0 and g[3] == 0.0 and g[4] == 0.0 \
+            and g[5] == 0.0:
+        return
+    gn = (1.0, 1.0, 1.0)
+    if gain.shape[0] == positions.shape[0]:
+        gn = (np.float64(gain[k, 0]), np.float64(gain[k, 1]), np.float64(gain[k, 2]))
+    # the kernel's Gaussian variance W from its conic, and its aperture disc
+    c11, c12, c22 = np.float64(out[k, C11]), np.float64(out[k, C12]), np.float64(out[k, C22])
+    inv = 1.0 / (c11 * c22 - c12 * c12)
+    p = (np.float64(positions[k, 0]), np.float64(positions[k, 1]), np.float64(positions[k, 2]))
+    nn = (np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2]))
+    sl = color_slope(p, nn, g, gn, view_t, ax, ay, c22 * inv, -c12 * inv, c11 * inv,
+                     abs(np.float64(out[k, RAD])))
     out[k, RX] = sl[0]
     out[k, RY] = sl[1]
     out[k, GX] = sl[2]
     out[k, GY] = sl[3]
     out[k, BX] = sl[4]
     out[k, BY] = sl[5]
-    bbox[k, 0] = cx0
-    bbox[k, 1] = cx1
-    bbox[k, 2] = cy0
-    bbox[k, 3] = cy1
-    visible[k] = True
