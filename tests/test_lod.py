@@ -45,6 +45,28 @@ def leaves_of(tree, i):
     return tree.order[tree.start[i]:tree.start[i] + tree.count[i]]
 
 
+def by_node(tree, s):
+    """The tree's attributes with a row per node (2N - 1): an inner node's stored row
+    (``Hierarchy.row``), a leaf's from its surfel, for which the tree stores nothing."""
+    inner = tree.count > 1
+    k = tree.order[tree.start[~inner]]
+    rv = s.radius_v if s.is_elliptical else s.radius
+    reach = np.maximum(s.radius, rv)[k]  # _node_spheres: the disk's radius about its centre
+    a_geo = s.radius[k] * rv[k]
+    weight = s.weight[k] if s.weight is not None else 1.0
+    leaf = {"center": s.positions[k], "bound": reach, "extent": reach,
+            "position": s.positions[k], "normal": s.normals[k], "cone": 0.0,
+            "color": s.colors[k], "opacity": s.opacity[k], "area": a_geo * weight,
+            "sigma_r2": 0.25 * a_geo, "lod_cov": 0.0, "color_grad": 0.0, "level": 0}
+    full = {}
+    for name, value in leaf.items():
+        a = getattr(tree, name)
+        full[name] = np.zeros((len(tree),) + a.shape[1:], a.dtype)
+        full[name][inner] = a
+        full[name][~inner] = value
+    return replace(tree, **full)
+
+
 # -- the hierarchy -------------------------------------------------------------------------
 
 
@@ -66,6 +88,7 @@ def test_every_surfel_sits_in_exactly_one_leaf(bumpy):
 
 def test_spheres_nest_and_contain_their_disks(bumpy):
     s, tree = bumpy
+    tree = by_node(tree, s)
     c = tree.center.astype(np.float64)
     for i in np.flatnonzero(tree.count > 1):
         for ch in tree.children(i):
@@ -83,7 +106,8 @@ def test_spheres_nest_and_contain_their_disks(bumpy):
 
 
 def test_prefiltered_attributes_are_area_weighted_means(bumpy):
-    s, tree = bumpy
+    s, stored = bumpy
+    tree = by_node(stored, s)
     area = s.radius ** 2 * s.weight
     rng = np.random.default_rng(2)
     for i in rng.choice(np.flatnonzero(tree.count > 1), 80, replace=False):
@@ -110,16 +134,18 @@ def test_prefiltered_attributes_are_area_weighted_means(bumpy):
         want = (c * w[:, None]).T @ (d @ np.stack([u, v], axis=1))  # (3 channels, 2 axes)
         np.testing.assert_allclose(tree.color_grad[i].reshape(3, 2), want, rtol=1e-4,
                                    atol=1e-6 * np.abs(want).max())
-    leaf = np.flatnonzero(tree.count == 1)
-    assert np.all(tree.lod_cov[leaf] == 0) and np.all(tree.level[leaf] == 0)
-    assert np.all(tree.color_grad[leaf] == 0)
+    # the tree stores its n - 1 inner nodes only, in preorder: node i is row i - start[i]
+    inner = np.flatnonzero(stored.count > 1)
+    assert stored.lod_cov.shape[0] == len(s) - 1 == inner.size
+    np.testing.assert_array_equal(stored.row(inner), np.arange(inner.size))
+    assert np.all(stored.level > 0)
 
 
 def test_grid_node_filter_is_the_leaf_rule_at_the_node_extent():
     """m x m grid leaves of spacing h: V^r + V^q = (m h)^2 / 4 along each grid axis."""
     h = 0.01
     s = grid_surfels(n=16, spacing=h)  # 256 surfels: a root of 16 x 16, children 8 x 16, ...
-    tree = build_hierarchy(s)
+    tree = by_node(build_hierarchy(s), s)
     for i, (mx, my) in [(0, (16, 16)), (1, (8, 16))]:
         cov = tree.lod_cov[i]
         ext = sorted([cov[0], cov[3]])
@@ -171,7 +197,8 @@ def _projected_lod_variance(tree, i, cam):
 
 def test_cut_is_a_valid_coarsest_cut(bumpy):
     """Selected nodes are disjoint, each satisfies a stop rule, and no parent already did."""
-    s, tree = bumpy
+    s, stored = bumpy
+    tree = by_node(stored, s)
     cam = ds.Camera(eye=(0.4, -1.2, 2.0), target=(0, 0, 0), width=160, height=120, fov_y=50)
     lens = ds.ThinLens(focus_distance=1.6, aperture=0.25)
     coc_k, inv_p = lens.coc_coefficients(cam)
@@ -180,8 +207,9 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal,
-                 tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, 0.01, 160, 120,
+    select_nodes(stored.start, stored.count, stored.center, stored.bound, stored.extent,
+                 stored.position, stored.normal, stored.cone, stored.sigma_r2, stored.lod_cov,
+                 view, ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, True, flags)
     chosen = np.flatnonzero(flags)
     inner = chosen[tree.count[chosen] > 1]
@@ -290,8 +318,8 @@ def _cut(tree, s, cam, lens):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal,
-                 tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by,
+    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position,
+                 tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by,
                  cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
                  2.5, 1.0, 1.0, True, flags)
     return np.flatnonzero(flags)
@@ -314,7 +342,7 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh):
     inner = src.level > 0
     assert inner.sum() > 20
     # the gather derives each node's level from its count: the tree's stored height
-    np.testing.assert_array_equal(src.level, tree.level[_cut(tree, s, cam, lens)])
+    np.testing.assert_array_equal(src.level, by_node(tree, s).level[_cut(tree, s, cam, lens)])
     as_surfels = ds.Surfels(positions=src.positions, normals=src.normals, radius=src.ru,
                             colors=src.colors, opacity=src.opacity,
                             weight=src.area / (src.ru * src.rv))

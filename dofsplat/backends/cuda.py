@@ -184,7 +184,7 @@ def _scatter_flagged(flags, position, nodes):
 
 
 @cuda.jit
-def _lod_level(depth, sizes, frontier, next_frontier, flags, count, center, bound, extent,
+def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, center, bound, extent,
                position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
                height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces):
     """Level ``depth`` of the breadth-first cut: visit each of its sizes[depth] nodes in
@@ -194,15 +194,18 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, count, center, boun
     of the tree without waiting for the previous level's count."""
     for t in range(cuda.grid(1), sizes[depth], cuda.gridsize(1)):
         i = frontier[t]
-        what = _visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2,
-                           lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-                           cutoff, thr2, kappa, cull_backfaces)
+        m = count[i]
+        what = SELECT  # a leaf: its surfel
+        if m > 1:  # an inner node: its attributes are row i - start[i] (lod/hierarchy.py)
+            what = _visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
+                               sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height,
+                               coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
             slot = cuda.atomic.add(sizes, depth + 1, 2)
             next_frontier[slot] = i + 1  # left child
-            next_frontier[slot + 1] = i + 2 * (count[i] // 2)  # right child
+            next_frontier[slot + 1] = i + 2 * (m // 2)  # right child
 
 
 @cuda.jit
@@ -218,8 +221,9 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
                       sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                       s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
                       out_area, out_cov, out_level)
+        i = nodes[t]
         for d in range(6):
-            out_grad[t, d] = color_grad[nodes[t], d]
+            out_grad[t, d] = color_grad[i - start[i], d] if count[i] > 1 else 0.0
 
 
 @cuda.jit
@@ -572,7 +576,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
     grid = min(_blocks(tree.n_surfels), LOD_BLOCKS)
     for depth in range(tree.depth):
         _lod_level[grid, THREADS](
-            depth, sizes, fronts[depth % 2], fronts[1 - depth % 2], flags, d["count"],
+            depth, sizes, fronts[depth % 2], fronts[1 - depth % 2], flags, d["start"], d["count"],
             d["center"], d["bound"], d["extent"], d["position"], d["normal"], d["cone"],
             d["sigma_r2"], d["lod_cov"], view, ax, bx, ay, by, near, camera.width, camera.height,
             float(coc_k), float(inv_focus), float(settings.cutoff), thr2,

@@ -42,7 +42,7 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
-    select_nodes(tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal, tree.cone,
+    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal, tree.cone,
                  tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near, camera.width,
                  camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
@@ -66,7 +66,9 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
                   surfels.weight if surfels.weight is not None else empty, out.positions,
                   out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv, out.area,
                   out.lod_cov, out.level)
-    # the colour gradients (zero at the leaves) in a pass of their own: two more arrays in
+    # the colour gradients (zero for a surfel) in a pass of their own: two more arrays in
     # gather_splat stop numba inlining it, which made the cut 2.5 x slower
-    np.take(tree.color_grad, nodes, axis=0, out=out.color_grad)
+    inner = tree.count[nodes] > 1
+    out.color_grad[~inner] = 0.0
+    out.color_grad[inner] = tree.color_grad[tree.row(nodes[inner])]
     return out

@@ -12,8 +12,11 @@ preorder, so the tree needs no child pointers:
     right child of node i = i + 2 * (count[i] // 2)
 
 Node i covers the surfels ``order[start[i] : start[i] + count[i]]``; a leaf (count 1) is one
-surfel. Each node carries what the per-frame selection and the splatting need (Sections 5.3
-and 6.2; docs/maths.md, "Level of detail"):
+surfel, and the tree stores nothing else for it: its attributes are its surfel's. The
+attributes below are stored for the N - 1 inner nodes only, in preorder, so inner node i is
+row ``i - start[i]`` (the leaves before i in preorder are exactly the surfels before its
+first, start[i] of them; ``Hierarchy.row``). Each inner node carries what the per-frame
+selection and the splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of detail"):
 
 * a bounding sphere (``center``, ``bound``) that contains its children's spheres, for
   frustum and normal-cone culling; and ``extent``, the radius about the same centre of the
@@ -58,32 +61,34 @@ from ..surfels import Surfels
 # a node whose unit normals spread by more than this in one component (1.4 ~ sqrt 2: normals
 # about 90 degrees apart) is split by normal, not by position (docs/maths.md)
 NORMAL_SPREAD = 1.4
-FORMAT_VERSION = 5  # bump when the build or the stored arrays change: old files are rebuilt
+FORMAT_VERSION = 6  # bump when the build or the stored arrays change: old files are rebuilt
 
 
 @dataclass
 class Hierarchy:
-    """The flat-array LOD tree over a surfel model (M = 2N - 1 nodes for N surfels).
+    """The flat-array LOD tree over a surfel model (M = 2N - 1 nodes for N surfels, K = N - 1
+    of them inner nodes).
 
     order:    (N,) int32, surfel indices in leaf order
     start:    (M,) int32, first leaf-order position of the node's surfels
     count:    (M,) int32, number of surfels under the node (1 for a leaf)
-    center:   (M, 3) float32, bounding-sphere centre, world units
-    bound:    (M,) float32, bounding-sphere radius (contains the children's spheres)
-    extent:   (M,) float32, radius about ``center`` that just contains the node's disks
-    position: (M, 3) float32, area-weighted mean position (where the node is splatted)
-    normal:   (M, 3) float32, unit area-weighted mean normal
-    cone:     (M,) float32, normal-cone half-angle, radians (pi: no culling possible)
-    color:    (M, 3) float32, area-weighted mean linear colour (the prefiltered texture)
-    opacity:  (M,) float32, area-weighted mean opacity
-    area:     (M,) float32, sum of the surfels' areas r_u r_v weight, world units^2
-    sigma_r2: (M,) float32, leaf basis variance V^r, world units^2
-    lod_cov:  (M, 6) float32, the level's low-pass filter V^{q,l}, world covariance
+    The rest have a row per inner node, node i's row being ``row(i)`` = i - start[i]:
+    center:   (K, 3) float32, bounding-sphere centre, world units
+    bound:    (K,) float32, bounding-sphere radius (contains the children's spheres)
+    extent:   (K,) float32, radius about ``center`` that just contains the node's disks
+    position: (K, 3) float32, area-weighted mean position (where the node is splatted)
+    normal:   (K, 3) float32, unit area-weighted mean normal
+    cone:     (K,) float32, normal-cone half-angle, radians (pi: no culling possible)
+    color:    (K, 3) float32, area-weighted mean linear colour (the prefiltered texture)
+    opacity:  (K,) float32, area-weighted mean opacity
+    area:     (K,) float32, sum of the surfels' areas r_u r_v weight, world units^2
+    sigma_r2: (K,) float32, leaf basis variance V^r, world units^2
+    lod_cov:  (K, 6) float32, the level's low-pass filter V^{q,l}, world covariance
               (xx, xy, xz, yy, yz, zz), world units^2
-    color_grad: (M, 6) float32, Cov(colour, position . t) per channel and tangent axis
+    color_grad: (K, 6) float32, Cov(colour, position . t) per channel and tangent axis
               (r.u, r.v, g.u, g.v, b.u, b.v; colour x world units), t = (u, v) the node's
               ``tangent_frame``
-    level:    (M,) int8, height above the leaves
+    level:    (K,) int8, height above the leaves
     fingerprint: hash of the surfel arrays the tree was built from
     """
 
@@ -115,7 +120,11 @@ class Hierarchy:
     @property
     def depth(self) -> int:
         """Number of levels (the root's height + 1)."""
-        return int(self.level[0]) + 1
+        return int(self.level[0]) + 1 if self.level.size else 1
+
+    def row(self, node):
+        """The row of inner node(s) ``node`` in the attribute arrays: node - start[node]."""
+        return node - self.start[node]
 
     def children(self, node: int) -> tuple[int, int] | None:
         """(left, right) node indices, or None for a leaf."""
@@ -238,6 +247,13 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
     _aggregate(order, start, count, positions, surfels.normals, ru, rv, weight,
                surfels.colors, surfels.opacity, center, bound, position, normal, cone,
                color, opacity, area, sigma_r2, lod_cov, color_grad, level)
+    # keep the inner nodes' rows only (a leaf is its surfel): in preorder, so node i's row
+    # is i - start[i]
+    inner = count > 1
+    center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2, lod_cov, \
+        color_grad, level = (a[inner] for a in (center, bound, extent, position, normal, cone,
+                                                color, opacity, area, sigma_r2, lod_cov,
+                                                color_grad, level))
     tree = Hierarchy(order=order, start=start, count=count, center=center, bound=bound,
                      extent=extent,
                      position=position, normal=normal, cone=cone, color=color,

@@ -46,24 +46,26 @@ CULL_TEST_MIN_COUNT = 32
 
 
 @shared
-def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
+def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
                ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                thr2, kappa, cull_backfaces):
-    """CULL, SELECT or DESCEND for node i (see the module docstring)."""
-    if count[i] == 1:
+    """CULL, SELECT or DESCEND for a node of m surfels whose attributes are row r of the
+    tree's arrays (internal nodes only: r = i - start[i], ``lod/hierarchy.py``; see the
+    module docstring)."""
+    if m == 1:
         # a leaf is one surfel: the projection culls it exactly (near plane, back face,
         # outside the image), so the tests below would only repeat that work
         return SELECT
     # bounding sphere in camera space
-    wx, wy, wz = center[i, 0], center[i, 1], center[i, 2]
+    wx, wy, wz = center[r, 0], center[r, 1], center[r, 2]
     cx = view[0] * wx + view[1] * wy + view[2] * wz + view[3]
     cy = view[4] * wx + view[5] * wy + view[6] * wz + view[7]
     cz = view[8] * wx + view[9] * wy + view[10] * wz + view[11]
     u = -cz
-    rad = np.float64(bound[i])
+    rad = np.float64(bound[r])
     if u + rad <= near:
         return CULL  # entirely behind the near plane
-    if count[i] >= CULL_TEST_MIN_COUNT:
+    if m >= CULL_TEST_MIN_COUNT:
         # frustum, widened by the largest blurred kernel's reach: a blurred splat just outside
         # the image can still reach into it
         u_near = max(u - rad, near)
@@ -84,21 +86,21 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
         if (-cy - s_top * cz) < -reach * math.sqrt(1.0 + s_top * s_top):
             return CULL
 
-    nwx, nwy, nwz = normal[i, 0], normal[i, 1], normal[i, 2]
+    nwx, nwy, nwz = normal[r, 0], normal[r, 1], normal[r, 2]
     nx = view[0] * nwx + view[1] * nwy + view[2] * nwz
     ny = view[4] * nwx + view[5] * nwy + view[6] * nwz
     nz = view[8] * nwx + view[9] * nwy + view[10] * nwz
-    if cull_backfaces and count[i] >= CULL_TEST_MIN_COUNT:
+    if cull_backfaces and m >= CULL_TEST_MIN_COUNT:
         dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if dist > rad and cone[i] < 0.5 * math.pi:
+        if dist > rad and cone[r] < 0.5 * math.pi:
             # every normal in the cone faces away from every point of the sphere
             cos_a = (nx * cx + ny * cy + nz * cz) / dist
             alpha = math.acos(min(1.0, max(-1.0, cos_a)))
-            if alpha + cone[i] + math.asin(rad / dist) < 0.5 * math.pi:
+            if alpha + cone[r] + math.asin(rad / dist) < 0.5 * math.pi:
                 return CULL
 
     # the node as a splat: its mean position and normal
-    pwx, pwy, pwz = position[i, 0], position[i, 1], position[i, 2]
+    pwx, pwy, pwz = position[r, 0], position[r, 1], position[r, 2]
     px = view[0] * pwx + view[1] * pwy + view[2] * pwz + view[3]
     py = view[4] * pwx + view[5] * pwy + view[6] * pwz + view[7]
     pz = view[8] * pwx + view[9] * pwy + view[10] * pwz + view[11]
@@ -106,8 +108,8 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
         return DESCEND
     if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:
         return DESCEND  # a back-facing mean: let the children decide
-    cov = (np.float64(lod_cov[i, 0]), np.float64(lod_cov[i, 1]), np.float64(lod_cov[i, 2]),
-           np.float64(lod_cov[i, 3]), np.float64(lod_cov[i, 4]), np.float64(lod_cov[i, 5]))
+    cov = (np.float64(lod_cov[r, 0]), np.float64(lod_cov[r, 1]), np.float64(lod_cov[r, 2]),
+           np.float64(lod_cov[r, 3]), np.float64(lod_cov[r, 4]), np.float64(lod_cov[r, 5]))
     q11, q12, q22, q_depth = screen_lod_variance(px, py, pz, cov, view, ax, ay)
     lam_q = max_eigenvalue(q11, q12, q22)
 
@@ -122,12 +124,12 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
         j12, j22 = jacobian_column(px, py, pz, tvx, tvy, tvz, ax, ay)
         lam_j = max_eigenvalue(j11 * j11 + j12 * j12, j11 * j21 + j12 * j22,
                                j21 * j21 + j22 * j22)
-        if 4.0 * (np.float64(sigma_r2[i]) * lam_j + lam_q) <= thr2:
+        if 4.0 * (np.float64(sigma_r2[r]) * lam_j + lam_q) <= thr2:
             return SELECT
     # DOF stop: J V^q J^T inside V^I for the smallest CoC over the node's depth range
     if coc_k > 0.0:
-        u_lo = max(u - extent[i], near)
-        u_hi = u + extent[i]
+        u_lo = max(u - extent[r], near)
+        u_hi = u + extent[r]
         if inv_focus > 0.0 and u_lo <= 1.0 / inv_focus <= u_hi:
             return DESCEND  # the focal plane runs through the node
         coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
@@ -137,7 +139,7 @@ def visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2
 
 
 @numba.njit(cache=True, nogil=True)
-def _walk(root, root_depth, max_depth, count, center, bound, extent, position, normal, cone,
+def _walk(root, root_depth, max_depth, start, count, center, bound, extent, position, normal, cone,
           sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
           cutoff, thr2, kappa, cull_backfaces, flags, pending, n_pending):
     """Depth-first walk of the subtree at ``root``; nodes deeper than max_depth that need a
@@ -156,13 +158,16 @@ def _walk(root, root_depth, max_depth, count, center, bound, extent, position, n
             pending[n_pending] = i
             n_pending += 1
             continue
-        what = visit_node(i, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
-                          view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-                          cutoff, thr2, kappa, cull_backfaces)
+        m = count[i]
+        if m == 1:
+            flags[i] = 1  # a leaf: its surfel (visit_node's first rule)
+            continue
+        what = visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
+                          sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
+                          inv_focus, cutoff, thr2, kappa, cull_backfaces)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
-            m = count[i]
             stack[top] = i + 2 * (m // 2)  # right child, visited second
             depths[top] = d + 1
             stack[top + 1] = i + 1
@@ -172,18 +177,18 @@ def _walk(root, root_depth, max_depth, count, center, bound, extent, position, n
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def select_nodes(count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
+def select_nodes(start, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
                  kappa, cull_backfaces, flags):
     """Set flags[i] = 1 for every node of the cut, 0 elsewhere."""
     flags[:] = 0
     pending = np.empty(1 << (SPLIT_DEPTH + 1), np.int64)
-    n_pending = _walk(0, 0, SPLIT_DEPTH - 1, count, center, bound, extent, position, normal, cone,
+    n_pending = _walk(0, 0, SPLIT_DEPTH - 1, start, count, center, bound, extent, position, normal, cone,
                       sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
                       inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, 0)
     dummy = np.empty(1, np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t], 0, STACK, count, center, bound, extent, position, normal, cone, sigma_r2,
+        _walk(pending[t], 0, STACK, start, count, center, bound, extent, position, normal, cone, sigma_r2,
               lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
               kappa, cull_backfaces, flags, dummy, 0)
 
@@ -215,17 +220,18 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
         for d in range(6):
             out_cov[t, d] = 0.0
         out_level[t] = 0
-    else:  # an inner node: its prefiltered attributes and LOD filter
+    else:  # an inner node: its prefiltered attributes and LOD filter, row i - start[i]
+        r = i - start[i]
         for d in range(3):
-            out_pos[t, d] = position[i, d]
-            out_nrm[t, d] = normal[i, d]
-            out_col[t, d] = color[i, d]
-        out_alpha[t] = opacity[i]
+            out_pos[t, d] = position[r, d]
+            out_nrm[t, d] = normal[r, d]
+            out_col[t, d] = color[r, d]
+        out_alpha[t] = opacity[r]
         if elliptical:
             for d in range(3):
                 out_tan[t, d] = 0.0  # derive the tangent from the normal
         for d in range(6):
-            out_cov[t, d] = lod_cov[i, d]
+            out_cov[t, d] = lod_cov[r, d]
         # the median split halves the count: the node's height is ceil(log2 count)
         h = 0
         m = count[i]
@@ -274,5 +280,6 @@ def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, ell
         if has_weight:
             a *= s_weight[k]
         return k, np.float64(ru), np.float64(rv), np.float64(a)
-    r = 2.0 * math.sqrt(sigma_r2[i])
-    return -1, r, r, np.float64(area[i])
+    row = i - start[i]  # the tree keeps inner nodes only (lod/hierarchy.py)
+    r = 2.0 * math.sqrt(sigma_r2[row])
+    return -1, r, r, np.float64(area[row])
