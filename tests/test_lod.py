@@ -434,3 +434,21 @@ def test_a_full_abuffer_never_writes_past_its_last_slot():
     assert insert_fragment(acc, cnt, 0, 1.0, 1, 1, 1, 1, np.nan, np.nan, np.nan) == 1
     assert cnt[0] == MAX_SURFACES and cnt[1] == 0
     np.testing.assert_array_equal(acc[1], before[1])  # the next pixel is untouched
+
+
+@pytest.mark.parametrize("show_lod", [False, True])
+def test_a_cut_drawn_in_chunks_is_the_cut_drawn_whole(plane_view, monkeypatch, show_lod):
+    """backends.cpu.draw_cut gathers, shades and projects the cut CUT_CHUNK nodes at a time
+    (the memory of a big frame): the frame is the same, bit for bit, in chunks of 1000."""
+    from dofsplat.backends import cpu
+
+    s, cam = plane_view
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.1)
+    st = ds.RenderSettings(show_lod=show_lod)
+    whole = ds.render(s, cam, lens, st)
+    monkeypatch.setattr(cpu, "CUT_CHUNK", 1000)
+    chunked = ds.render(s, cam, lens, st)
+    assert chunked.stats["splats_selected"] > 10 * 1000  # many chunks
+    np.testing.assert_array_equal(chunked.image, whole.image)
+    np.testing.assert_array_equal(chunked.depth, whole.depth)
+    assert chunked.stats["fragments"] == whole.stats["fragments"]

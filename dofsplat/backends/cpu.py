@@ -33,18 +33,28 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     blur_lens = None if settings.show_lod else lens
     parts = lens_parts(camera, blur_lens, settings)
 
-    t = time.perf_counter()
-    source = select(surfels, camera, lens, settings, hierarchy, parts)
-    times["select_ms"] = _ms(t)
-
-    t = time.perf_counter()
-    rgb, gain = shade_splats(source, camera, settings)
-    times["shade_ms"] = _ms(t)
-
-    if parts is None:
-        image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings, gain)
+    if parts is None and settings.lod:
+        # the cut gathered, shaded and projected a chunk at a time (draw_cut)
+        t = time.perf_counter()
+        nodes = select_cut(surfels, camera, lens, settings, hierarchy)
+        times["select_ms"] = _ms(t)
+        image, depth, weight, frame_stats = draw_cut(surfels, lod_tree(surfels, hierarchy), nodes,
+                                                     camera, blur_lens, settings, times)
+        n_selected = nodes.size
     else:
-        image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings, gain)
+        t = time.perf_counter()
+        source = select(surfels, camera, lens, settings, hierarchy, parts)
+        times["select_ms"] = _ms(t)
+
+        t = time.perf_counter()
+        rgb, gain = shade_splats(source, camera, settings)
+        times["shade_ms"] = _ms(t)
+
+        if parts is None:
+            image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings, gain)
+        else:
+            image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings, gain)
+        n_selected = source.size
     for stage in ("project_ms", "bin_ms", "front_ms", "raster_ms"):
         times[stage] = frame_stats.pop(stage)
     times["total_ms"] = _ms(t_start)
@@ -53,7 +63,7 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
         "points_in": int(len(surfels)),
         "lod": bool(settings.lod),
         "lens_samples": 1 if parts is None else len(parts.offsets),
-        "splats_selected": int(source.size),
+        "splats_selected": int(n_selected),
         **frame_stats,
         "width": camera.width,
         "height": camera.height,
@@ -67,7 +77,53 @@ def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None)
     t = time.perf_counter()
     splats, bbox, visible = project(source, rgb, camera, lens, settings, workspace=_workspace(),
                                     gain=gain)
-    project_ms = _ms(t)
+    return draw_splats(splats, bbox, visible, camera, lens, settings, _ms(t))
+
+
+# nodes of an LOD cut gathered, shaded and projected at a time (draw_cut): 2^20 of them
+# hold 125 MB, where a whole pinhole cut of 10 M surfels (5.2 M nodes) held 650 MB
+CUT_CHUNK = 1 << 20
+
+
+def draw_cut(surfels: Surfels, tree, nodes, camera: Camera, lens, settings: RenderSettings,
+             times: dict):
+    """``draw`` for an LOD cut, given as its node indices (``select_cut``): each CUT_CHUNK
+    nodes are gathered (``lod.gather_cut``), shaded and projected into their rows of one
+    splat buffer before the next are, so the gathered nodes of the whole cut never exist at
+    once. The splats are those of ``draw(select(...))``, row for row. Adds the gathers and
+    the shading to times["select_ms"] and times["shade_ms"]."""
+    from ..lod import gather_cut
+    from ..splat.project import N_FIELDS
+
+    n = nodes.size
+    workspace = _workspace()
+    splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
+    bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
+    visible = _buffer(workspace, "visible", (n,), np.bool_)
+    project_ms = shade_ms = 0.0
+    for lo in range(0, n, CUT_CHUNK):
+        hi = min(lo + CUT_CHUNK, n)
+        t = time.perf_counter()
+        source = gather_cut(tree, surfels, nodes[lo:hi])
+        if settings.show_lod:
+            source = source._replace(colors=lod_level_colors(source.level))
+        times["select_ms"] += _ms(t)
+        t = time.perf_counter()
+        rgb, gain = shade_splats(source, camera, settings)
+        shade_ms += _ms(t)
+        t = time.perf_counter()
+        project(source, rgb, camera, lens, settings, gain=gain,
+                out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
+        project_ms += _ms(t)
+        del source, rgb, gain
+    times["shade_ms"] = shade_ms
+    return draw_splats(splats, bbox, visible, camera, lens, settings, project_ms)
+
+
+def draw_splats(splats, bbox, visible, camera: Camera, lens, settings: RenderSettings,
+                project_ms: float):
+    """Bin and rasterise projected splats (``draw``'s second half): (image, depth, weight,
+    stats)."""
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings)
     bin_ms = _ms(t)
@@ -104,23 +160,30 @@ def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
 # -- stages ------------------------------------------------------------------------------
 
 
+def select_cut(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
+               hierarchy=None, parts=None) -> np.ndarray:
+    """This frame's LOD cut as node indices in preorder (``select``'s, before the gather)."""
+    from ..lod import select_cut as cut
+
+    tree = lod_tree(surfels, hierarchy)
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    return cut(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
+               settings.lod_pixel_threshold, settings.cull_backfaces, lod_kappa(settings, parts))
+
+
 def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hierarchy=None,
            parts=None):
     """What to splat: every surfel, or this frame's LOD cut (Section 6.2). A ``SplatSource``.
 
     parts: the lens's parts (``frame.lens_parts``): nodes are then chosen by the residual
     blur, which each part draws (the frustum still widened by the whole lens's)."""
+    from ..lod import gather_cut
     from ..splat.source import from_surfels
 
     if not settings.lod:
         return from_surfels(surfels)
-    from ..lod import select_splats
-
     tree = lod_tree(surfels, hierarchy)
-    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
-    source = select_splats(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
-                           settings.lod_pixel_threshold, settings.cull_backfaces,
-                           lod_kappa(settings, parts))
+    source = gather_cut(tree, surfels, select_cut(surfels, camera, lens, settings, tree, parts))
     if settings.show_lod:
         source = source._replace(colors=lod_level_colors(source.level))
     return source
@@ -152,14 +215,16 @@ def shade_splats(source, camera: Camera, settings: RenderSettings):
 
 
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
-            lod_cov: np.ndarray | None = None, workspace: dict | None = None, gain=None):
+            lod_cov: np.ndarray | None = None, workspace: dict | None = None, gain=None,
+            out=None):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
 
     source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
     ``lod_cov`` (N, 6), if given, is the LOD filter's world covariance per surfel);
     workspace: a dict whose arrays the splats may reuse (``render`` keeps one per thread),
     else they are new; gain: (S, 3) the shading's factor on the colour (``shade_splats``),
-    applied to the nodes' colour gradients, or None for 1
+    applied to the nodes' colour gradients, or None for 1; out: (splats, bbox, visible)
+    arrays of S rows to fill instead (``draw_cut``)
     """
     from ..splat.project import N_FIELDS, project_splats, slope_splats
     from ..splat.source import from_surfels
@@ -174,9 +239,12 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     ax, bx, ay, by = camera.screen_coefficients()
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
-    splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
-    bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
-    visible = _buffer(workspace, "visible", (n,), np.bool_)
+    if out is not None:
+        splats, bbox, visible = out
+    else:
+        splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
+        bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
+        visible = _buffer(workspace, "visible", (n,), np.bool_)
     disc, blades, _, moments = aperture_shape(lens, settings)
     project_splats(source.positions, source.normals, tangents, ru, rv, area,
                    np.ascontiguousarray(rgb, np.float32), source.opacity, source.lod_cov, view,

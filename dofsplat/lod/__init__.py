@@ -9,10 +9,10 @@ ordinary projection kernel.
 from __future__ import annotations
 
 from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
-from .select import gather_splats, select_nodes
+from .select import gather_gradients, gather_splats, select_nodes
 
-__all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "hierarchy_for",
-           "select_splats", "select_nodes"]
+__all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
+           "hierarchy_for", "select_cut", "select_splats", "select_nodes"]
 
 
 def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
@@ -32,9 +32,15 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
                   cutoff: float, pixel_threshold: float, cull_backfaces: bool,
                   blur_fraction: float = 1.0):
     """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
-    import numpy as np
+    return gather_cut(tree, surfels, select_cut(tree, surfels, camera, coc_k, inv_focus, cutoff,
+                                                pixel_threshold, cull_backfaces, blur_fraction))
 
-    from ..splat.source import SplatSource
+
+def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
+               cutoff: float, pixel_threshold: float, cull_backfaces: bool,
+               blur_fraction: float = 1.0):
+    """The node indices of this frame's cut, (S,) int64 in preorder (``select_nodes``)."""
+    import numpy as np
 
     if tree.n_surfels != len(surfels):
         raise ValueError("the hierarchy was built for a different model")
@@ -42,11 +48,20 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
-    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position, tree.normal, tree.cone,
-                 tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near, camera.width,
-                 camera.height, float(coc_k), float(inv_focus), float(cutoff),
+    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position,
+                 tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near,
+                 camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
-    nodes = np.flatnonzero(flags)
+    return np.flatnonzero(flags)
+
+
+def gather_cut(tree: Hierarchy, surfels, nodes):
+    """Nodes ``nodes`` (indices, e.g. a slice of ``select_cut``'s) as a ``SplatSource``: a
+    leaf is its surfel, an inner node its prefiltered attributes (``gather_splats``)."""
+    import numpy as np
+
+    from ..splat.source import SplatSource
+
     n = nodes.size
     ell = surfels.is_elliptical
     empty = np.zeros(0, np.float32)
@@ -68,7 +83,5 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
                   out.lod_cov, out.level)
     # the colour gradients (zero for a surfel) in a pass of their own: two more arrays in
     # gather_splat stop numba inlining it, which made the cut 2.5 x slower
-    inner = tree.count[nodes] > 1
-    out.color_grad[~inner] = 0.0
-    out.color_grad[inner] = tree.color_grad[tree.row(nodes[inner])]
+    gather_gradients(nodes, tree.start, tree.count, tree.color_grad, out.color_grad)
     return out

@@ -261,6 +261,21 @@ def gather_splats(nodes, order, start, count, position, normal, color, opacity, 
                      out_area, out_cov, out_level)
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def gather_gradients(nodes, start, count, color_grad, out):
+    """out[t] = the colour gradient of node nodes[t]: its row of ``color_grad`` (inner
+    nodes only, row i - start[i]), zero for a leaf (a surfel's colour is flat)."""
+    for t in numba.prange(nodes.shape[0]):
+        i = nodes[t]
+        if count[i] > 1:
+            r = i - start[i]
+            for d in range(6):
+                out[t, d] = color_grad[r, d]
+        else:
+            for d in range(6):
+                out[t, d] = 0.0
+
+
 @numba.njit(cache=True, nogil=True)
 def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
                has_weight):
