@@ -207,11 +207,11 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(stored.start, stored.count, stored.center, stored.bound, stored.extent,
+    select_nodes(stored.n_surfels, stored.center, stored.bound, stored.extent,
                  stored.position, stored.normal, stored.cone, stored.sigma_r2, stored.lod_cov,
                  view, ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, True, flags)
-    chosen = np.flatnonzero(flags)
+    chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
     inner = chosen[tree.count[chosen] > 1]
     assert inner.size > 20  # the blur lets the cut stop above the leaves
     covered = np.zeros(len(s), int)
@@ -318,11 +318,11 @@ def _cut(tree, s, cam, lens):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position,
+    select_nodes(tree.n_surfels, tree.center, tree.bound, tree.extent, tree.position,
                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by,
                  cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
                  2.5, 1.0, 1.0, True, flags)
-    return np.flatnonzero(flags)
+    return np.flatnonzero(flags == 1)
 
 
 @pytest.mark.parametrize("bokeh", ["gaussian", "disc"])

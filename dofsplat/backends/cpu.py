@@ -36,11 +36,11 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     if parts is None and settings.lod:
         # the cut gathered, shaded and projected a chunk at a time (draw_cut)
         t = time.perf_counter()
-        nodes = select_cut(surfels, camera, lens, settings, hierarchy)
+        cut = select_cut(surfels, camera, lens, settings, hierarchy)
         times["select_ms"] = _ms(t)
-        image, depth, weight, frame_stats = draw_cut(surfels, lod_tree(surfels, hierarchy), nodes,
+        image, depth, weight, frame_stats = draw_cut(surfels, lod_tree(surfels, hierarchy), cut,
                                                      camera, blur_lens, settings, times)
-        n_selected = nodes.size
+        n_selected = cut[0].size
     else:
         t = time.perf_counter()
         source = select(surfels, camera, lens, settings, hierarchy, parts)
@@ -85,9 +85,9 @@ def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None)
 CUT_CHUNK = 1 << 20
 
 
-def draw_cut(surfels: Surfels, tree, nodes, camera: Camera, lens, settings: RenderSettings,
+def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
              times: dict):
-    """``draw`` for an LOD cut, given as its node indices (``select_cut``): each CUT_CHUNK
+    """``draw`` for an LOD cut (``select_cut``: its nodes, first leaves, counts): each CUT_CHUNK
     nodes are gathered (``lod.gather_cut``), shaded and projected into their rows of one
     splat buffer before the next are, so the gathered nodes of the whole cut never exist at
     once. The splats are those of ``draw(select(...))``, row for row. Adds the gathers and
@@ -95,7 +95,7 @@ def draw_cut(surfels: Surfels, tree, nodes, camera: Camera, lens, settings: Rend
     from ..lod import gather_cut
     from ..splat.project import N_FIELDS
 
-    n = nodes.size
+    n = cut[0].size
     workspace = _workspace()
     splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
@@ -104,7 +104,7 @@ def draw_cut(surfels: Surfels, tree, nodes, camera: Camera, lens, settings: Rend
     for lo in range(0, n, CUT_CHUNK):
         hi = min(lo + CUT_CHUNK, n)
         t = time.perf_counter()
-        source = gather_cut(tree, surfels, nodes[lo:hi])
+        source = gather_cut(tree, surfels, tuple(a[lo:hi] for a in cut))
         if settings.show_lod:
             source = source._replace(colors=lod_level_colors(source.level))
         times["select_ms"] += _ms(t)
@@ -161,8 +161,9 @@ def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
 
 
 def select_cut(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
-               hierarchy=None, parts=None) -> np.ndarray:
-    """This frame's LOD cut as node indices in preorder (``select``'s, before the gather)."""
+               hierarchy=None, parts=None):
+    """This frame's LOD cut, ``select``'s before the gather: (nodes in preorder, their first
+    leaves, their counts) (``lod.select_cut``)."""
     from ..lod import select_cut as cut
 
     tree = lod_tree(surfels, hierarchy)

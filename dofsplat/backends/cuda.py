@@ -212,16 +212,20 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, cente
 def _gather(nodes, order, start, count, position, normal, color, opacity, area, sigma_r2,
             lod_cov, color_grad, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
             out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
-            out_grad, out_level):
+            out_grad, out_level, row_start, row_count):
     """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row),
-    and its colour gradient (zero at the leaves; lod/__init__.py's np.take)."""
+    and its colour gradient (zero at the leaves; lod/select.py's gather_gradients).
+    start, count: every node's (the tree's shape); row_start, row_count: the rows' own,
+    filled here (gather_splat reads them by row, as the CPU's cut_nodes gives them)."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
-        _gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                      sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
+        i = nodes[t]
+        row_start[t] = start[i]
+        row_count[t] = count[i]
+        _gather_splat(t, nodes, order, row_start, row_count, position, normal, color, opacity,
+                      area, sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                       s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
                       out_area, out_cov, out_level)
-        i = nodes[t]
         for d in range(6):
             out_grad[t, d] = color_grad[i - start[i], d] if count[i] > 1 else 0.0
 
@@ -609,7 +613,8 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
             src.normals, src.colors, src.opacity, scene.raw["tangent"], src.ru,
             scene.raw["radius_v"], scene.raw["weight"], out.positions, out.normals, out.colors,
             out.opacity, out.tangents, out.ru, out.rv, out.area, out.lod_cov, out.color_grad,
-            out.level)
+            out.level, _WS.get("lod.row_start", (n,), np.int32),
+            _WS.get("lod.row_count", (n,), np.int32))
     if settings.show_lod:
         colors = _WS.get("src.level_colors", (n, 3), np.float32)
         if n:

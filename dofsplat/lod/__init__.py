@@ -9,7 +9,7 @@ ordinary projection kernel.
 from __future__ import annotations
 
 from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
-from .select import gather_gradients, gather_splats, select_nodes
+from .select import cut_nodes, gather_gradients, gather_splats, select_nodes
 
 __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
            "hierarchy_for", "select_cut", "select_splats", "select_nodes"]
@@ -39,7 +39,8 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                cutoff: float, pixel_threshold: float, cull_backfaces: bool,
                blur_fraction: float = 1.0):
-    """The node indices of this frame's cut, (S,) int64 in preorder (``select_nodes``)."""
+    """This frame's cut: (nodes (S,) int64 in preorder, their first leaves (S,) int32, their
+    counts (S,) int32) (``select_nodes``, ``cut_nodes``)."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):
@@ -48,20 +49,22 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
-    select_nodes(tree.start, tree.count, tree.center, tree.bound, tree.extent, tree.position,
+    select_nodes(tree.n_surfels, tree.center, tree.bound, tree.extent, tree.position,
                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near,
                  camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
-    return np.flatnonzero(flags)
+    return cut_nodes(flags, tree.n_surfels)
 
 
-def gather_cut(tree: Hierarchy, surfels, nodes):
-    """Nodes ``nodes`` (indices, e.g. a slice of ``select_cut``'s) as a ``SplatSource``: a
-    leaf is its surfel, an inner node its prefiltered attributes (``gather_splats``)."""
+def gather_cut(tree: Hierarchy, surfels, cut):
+    """The nodes of ``cut`` ((nodes, start, count) as ``select_cut`` gives them, or rows of
+    it) as a ``SplatSource``: a leaf is its surfel, an inner node its prefiltered attributes
+    (``gather_splats``)."""
     import numpy as np
 
     from ..splat.source import SplatSource
 
+    nodes, start, count = cut
     n = nodes.size
     ell = surfels.is_elliptical
     empty = np.zeros(0, np.float32)
@@ -73,7 +76,7 @@ def gather_cut(tree: Hierarchy, surfels, nodes):
         lod_cov=np.empty((n, 6), np.float32), color_grad=np.empty((n, 6), np.float32),
         level=np.empty(n, np.int8),
         material=surfels.material)
-    gather_splats(nodes, tree.order, tree.start, tree.count, tree.position, tree.normal,
+    gather_splats(nodes, tree.order, start, count, tree.position, tree.normal,
                   tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov,
                   surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
                   surfels.tangent if ell else np.zeros((0, 3), np.float32), surfels.radius,
@@ -83,5 +86,5 @@ def gather_cut(tree: Hierarchy, surfels, nodes):
                   out.lod_cov, out.level)
     # the colour gradients (zero for a surfel) in a pass of their own: two more arrays in
     # gather_splat stop numba inlining it, which made the cut 2.5 x slower
-    gather_gradients(nodes, tree.start, tree.count, tree.color_grad, out.color_grad)
+    gather_gradients(nodes, start, count, tree.color_grad, out.color_grad)
     return out

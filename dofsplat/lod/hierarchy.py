@@ -70,8 +70,6 @@ class Hierarchy:
     of them inner nodes).
 
     order:    (N,) int32, surfel indices in leaf order
-    start:    (M,) int32, first leaf-order position of the node's surfels
-    count:    (M,) int32, number of surfels under the node (1 for a leaf)
     The rest have a row per inner node, node i's row being ``row(i)`` = i - start[i]:
     center:   (K, 3) float32, bounding-sphere centre, world units
     bound:    (K,) float32, bounding-sphere radius (contains the children's spheres)
@@ -90,11 +88,14 @@ class Hierarchy:
               ``tangent_frame``
     level:    (K,) int8, height above the leaves
     fingerprint: hash of the surfel arrays the tree was built from
+
+    ``start`` and ``count`` ((M,) int32: each node's first leaf-order position and number of
+    surfels) are not stored: the tree's shape depends on N alone (median splits, m into
+    m // 2 and m - m // 2), so the walk derives them on its way down, and these properties
+    compute them (``tree_shape``) for whoever asks, the CUDA backend and the tests.
     """
 
     order: np.ndarray
-    start: np.ndarray
-    count: np.ndarray
     center: np.ndarray
     bound: np.ndarray
     extent: np.ndarray
@@ -111,7 +112,21 @@ class Hierarchy:
     fingerprint: str
 
     def __len__(self) -> int:
-        return self.count.shape[0]
+        return 2 * self.n_surfels - 1
+
+    @property
+    def start(self) -> np.ndarray:
+        return self._shape()[0]
+
+    @property
+    def count(self) -> np.ndarray:
+        return self._shape()[1]
+
+    def _shape(self):
+        shape = self.__dict__.get("_shape_arrays")
+        if shape is None:
+            shape = self.__dict__["_shape_arrays"] = tree_shape(self.n_surfels)
+        return shape
 
     @property
     def n_surfels(self) -> int:
@@ -254,7 +269,7 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
         color_grad, level = (a[inner] for a in (center, bound, extent, position, normal, cone,
                                                 color, opacity, area, sigma_r2, lod_cov,
                                                 color_grad, level))
-    tree = Hierarchy(order=order, start=start, count=count, center=center, bound=bound,
+    tree = Hierarchy(order=order, center=center, bound=bound,
                      extent=extent,
                      position=position, normal=normal, cone=cone, color=color,
                      opacity=opacity, area=area, sigma_r2=sigma_r2, lod_cov=lod_cov,
@@ -262,6 +277,37 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
                      fingerprint=fingerprint(surfels))
     tree.build_seconds = time.perf_counter() - t0  # informational, not stored
     return tree
+
+
+@numba.njit(cache=True, nogil=True)
+def tree_shape(n_surfels):
+    """(start, count), (2N - 1,) int32 each: every node's first leaf-order position and
+    number of surfels, in preorder, for the median splits of ``build_hierarchy``."""
+    m_nodes = max(2 * n_surfels - 1, 0)
+    start = np.empty(m_nodes, np.int32)
+    count = np.empty(m_nodes, np.int32)
+    if m_nodes == 0:
+        return start, count
+    stack = np.empty((96, 3), np.int64)
+    stack[0, 0] = 0
+    stack[0, 1] = 0
+    stack[0, 2] = n_surfels
+    top = 1
+    while top > 0:
+        top -= 1
+        i, s, m = stack[top, 0], stack[top, 1], stack[top, 2]
+        start[i] = s
+        count[i] = m
+        if m > 1:
+            h = m // 2
+            stack[top, 0] = i + 2 * h
+            stack[top, 1] = s + h
+            stack[top, 2] = m - h
+            stack[top + 1, 0] = i + 1
+            stack[top + 1, 1] = s
+            stack[top + 1, 2] = h
+            top += 2
+    return start, count
 
 
 def _progress(enabled: bool, n: int):

@@ -36,7 +36,7 @@ import numpy as np
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, tangent_from_normal)
 
-CULL, SELECT, DESCEND = 0, 1, 2
+CULL, SELECT, DESCEND = 3, 1, 2  # also the flags of select_nodes (0: not visited)
 SPLIT_DEPTH = 10  # 1024 subtrees for the parallel walk
 STACK = 96  # the median split keeps depth <= ceil(log2 N) + 1, far below this
 # frustum and normal-cone culling cost square roots and inverse trigonometric functions:
@@ -139,58 +139,109 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
 
 
 @numba.njit(cache=True, nogil=True)
-def _walk(root, root_depth, max_depth, start, count, center, bound, extent, position, normal, cone,
-          sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-          cutoff, thr2, kappa, cull_backfaces, flags, pending, n_pending):
-    """Depth-first walk of the subtree at ``root``; nodes deeper than max_depth that need a
-    visit are appended to ``pending`` instead. Returns the new n_pending."""
-    stack = np.empty(STACK, np.int64)
-    depths = np.empty(STACK, np.int64)
-    top = 0
-    stack[0] = root
-    depths[0] = root_depth
+def _walk(root, root_start, root_count, root_depth, max_depth, center, bound, extent, position,
+          normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
+          inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, n_pending):
+    """Depth-first walk of the subtree at node ``root`` (its first leaf and count given):
+    flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth that need
+    a visit are appended to ``pending`` (rows of node, first leaf, count) instead. Returns
+    the new n_pending.
+
+    A node's first leaf s and count m come down from its parent (left child: s, m // 2;
+    right child: s + m // 2, m - m // 2; the tree's shape depends on N alone), and an
+    inner node's attributes are row i - s."""
+    stack = np.empty((STACK, 4), np.int64)  # node, first leaf, count, depth
+    stack[0, 0] = root
+    stack[0, 1] = root_start
+    stack[0, 2] = root_count
+    stack[0, 3] = root_depth
     top = 1
     while top > 0:
         top -= 1
-        i = stack[top]
-        d = depths[top]
+        i, s, m, d = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         if d > max_depth:
-            pending[n_pending] = i
+            pending[n_pending, 0] = i
+            pending[n_pending, 1] = s
+            pending[n_pending, 2] = m
             n_pending += 1
             continue
-        m = count[i]
         if m == 1:
-            flags[i] = 1  # a leaf: its surfel (visit_node's first rule)
+            flags[i] = SELECT  # a leaf: its surfel (visit_node's first rule)
             continue
-        what = visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
-                          sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
-                          inv_focus, cutoff, thr2, kappa, cull_backfaces)
-        if what == SELECT:
-            flags[i] = 1
-        elif what == DESCEND:
-            stack[top] = i + 2 * (m // 2)  # right child, visited second
-            depths[top] = d + 1
-            stack[top + 1] = i + 1
-            depths[top + 1] = d + 1
+        what = visit_node(i - s, m, center, bound, extent, position, normal, cone, sigma_r2,
+                          lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
+                          cutoff, thr2, kappa, cull_backfaces)
+        flags[i] = what
+        if what == DESCEND:
+            h = m // 2
+            stack[top, 0] = i + 2 * h  # right child, visited second
+            stack[top, 1] = s + h
+            stack[top, 2] = m - h
+            stack[top, 3] = d + 1
+            stack[top + 1, 0] = i + 1
+            stack[top + 1, 1] = s
+            stack[top + 1, 2] = h
+            stack[top + 1, 3] = d + 1
             top += 2
     return n_pending
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def select_nodes(start, count, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
-                 ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
+def select_nodes(n_surfels, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
+                 view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
                  kappa, cull_backfaces, flags):
-    """Set flags[i] = 1 for every node of the cut, 0 elsewhere."""
+    """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
+    node whose children were visited, and 0 for the rest (below a selected or culled node).
+    ``cut_nodes`` reads the cut from the flags."""
     flags[:] = 0
-    pending = np.empty(1 << (SPLIT_DEPTH + 1), np.int64)
-    n_pending = _walk(0, 0, SPLIT_DEPTH - 1, start, count, center, bound, extent, position, normal, cone,
-                      sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
-                      inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, 0)
-    dummy = np.empty(1, np.int64)
+    pending = np.empty((1 << (SPLIT_DEPTH + 1), 3), np.int64)
+    n_pending = _walk(0, 0, n_surfels, 0, SPLIT_DEPTH - 1, center, bound, extent, position,
+                      normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height,
+                      coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, 0)
+    dummy = np.empty((1, 3), np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t], 0, STACK, start, count, center, bound, extent, position, normal, cone, sigma_r2,
-              lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-              kappa, cull_backfaces, flags, dummy, 0)
+        _walk(pending[t, 0], pending[t, 1], pending[t, 2], 0, STACK, center, bound, extent,
+              position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
+              height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, dummy, 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def cut_nodes(flags, n_surfels):
+    """The selected nodes in preorder, with each one's first leaf and count: (nodes (S,)
+    int64, start (S,) int32, count (S,) int32), from ``select_nodes``' flags, by walking
+    the visited part of the tree again (no per-node start or count array is stored)."""
+    n = 0
+    for i in range(flags.shape[0]):
+        if flags[i] == SELECT:
+            n += 1
+    nodes = np.empty(n, np.int64)
+    start = np.empty(n, np.int32)
+    count = np.empty(n, np.int32)
+    stack = np.empty((STACK, 3), np.int64)
+    stack[0, 0] = 0
+    stack[0, 1] = 0
+    stack[0, 2] = n_surfels
+    top = 1
+    t = 0
+    while top > 0:
+        top -= 1
+        i, s, m = stack[top, 0], stack[top, 1], stack[top, 2]
+        f = flags[i]
+        if f == SELECT:
+            nodes[t] = i
+            start[t] = s
+            count[t] = m
+            t += 1
+        elif f == DESCEND:
+            h = m // 2
+            stack[top, 0] = i + 2 * h
+            stack[top, 1] = s + h
+            stack[top, 2] = m - h
+            stack[top + 1, 0] = i + 1
+            stack[top + 1, 1] = s
+            stack[top + 1, 2] = h
+            top += 2
+    return nodes, start, count
 
 
 # inlined at numba's level, like project_splat; the CUDA backend compiles it as its device twin
@@ -199,15 +250,16 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
                  sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
                  out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area,
                  out_cov, out_level):
-    """Row t of the splat arrays: node nodes[t] (``gather_splats``; one GPU thread per row).
+    """Row t of the splat arrays: node nodes[t], whose first leaf and count are start[t]
+    and count[t] (``cut_nodes``; ``gather_splats``; one GPU thread per row).
 
     s_tan, s_rv: (0, 3) and (0,) for circular surfels; s_weight: (0,) without weights.
     """
     elliptical = s_tan.shape[0] > 0
     has_weight = s_weight.shape[0] > 0
     i = nodes[t]
-    k, ru, rv, a = node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight,
-                              elliptical, has_weight)
+    k, ru, rv, a = node_splat(i, start[t], count[t], order, sigma_r2, area, s_ru, s_rv,
+                              s_weight, elliptical, has_weight)
     if k >= 0:  # a leaf: its surfel, unchanged
         for d in range(3):
             out_pos[t, d] = s_pos[k, d]
@@ -220,8 +272,8 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
         for d in range(6):
             out_cov[t, d] = 0.0
         out_level[t] = 0
-    else:  # an inner node: its prefiltered attributes and LOD filter, row i - start[i]
-        r = i - start[i]
+    else:  # an inner node: its prefiltered attributes and LOD filter, row i - start
+        r = i - start[t]
         for d in range(3):
             out_pos[t, d] = position[r, d]
             out_nrm[t, d] = normal[r, d]
@@ -234,7 +286,7 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
             out_cov[t, d] = lod_cov[r, d]
         # the median split halves the count: the node's height is ceil(log2 count)
         h = 0
-        m = count[i]
+        m = count[t]
         while m > 1:
             m = (m + 1) // 2
             h += 1
@@ -249,7 +301,8 @@ def gather_splats(nodes, order, start, count, position, normal, color, opacity, 
                   sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                   s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
                   out_area, out_cov, out_level):
-    """Fill the splat arrays (one row per selected node) from the tree and the surfels.
+    """Fill the splat arrays (one row per selected node) from the tree and the surfels;
+    start, count: each selected node's first leaf and count (``cut_nodes``).
 
     A leaf is its surfel, unchanged; an inner node is a circular splat at its mean position
     with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter.
@@ -263,12 +316,13 @@ def gather_splats(nodes, order, start, count, position, normal, color, opacity, 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def gather_gradients(nodes, start, count, color_grad, out):
-    """out[t] = the colour gradient of node nodes[t]: its row of ``color_grad`` (inner
-    nodes only, row i - start[i]), zero for a leaf (a surfel's colour is flat)."""
+    """out[t] = the colour gradient of node nodes[t] (first leaf start[t], count count[t]):
+    its row of ``color_grad`` (inner nodes only, row i - start), zero for a leaf (a surfel's
+    colour is flat)."""
     for t in numba.prange(nodes.shape[0]):
         i = nodes[t]
-        if count[i] > 1:
-            r = i - start[i]
+        if count[t] > 1:
+            r = i - start[t]
             for d in range(6):
                 out[t, d] = color_grad[r, d]
         else:
@@ -277,16 +331,17 @@ def gather_gradients(nodes, start, count, color_grad, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
+def node_splat(i, s, m, order, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
                has_weight):
-    """Node i as a splat: (k, r_u, r_v, area), for ``gather_splat``.
+    """Node i, first leaf s and m surfels, as a splat: (k, r_u, r_v, area), for
+    ``gather_splat``.
 
     A leaf is its surfel k, unchanged (its radii, and the area r_u r_v weight it stands
     for); an inner node (k = -1) is circular, with the leaf basis radius 2 sqrt(V^r), and
     stands for its surfels' total area.
     """
-    if count[i] == 1:
-        k = order[start[i]]
+    if m == 1:
+        k = order[s]
         ru = s_ru[k]
         rv = ru
         if elliptical:
@@ -295,6 +350,6 @@ def node_splat(i, order, start, count, sigma_r2, area, s_ru, s_rv, s_weight, ell
         if has_weight:
             a *= s_weight[k]
         return k, np.float64(ru), np.float64(rv), np.float64(a)
-    row = i - start[i]  # the tree keeps inner nodes only (lod/hierarchy.py)
+    row = i - s  # the tree keeps inner nodes only (lod/hierarchy.py)
     r = 2.0 * math.sqrt(sigma_r2[row])
     return -1, r, r, np.float64(area[row])
