@@ -172,6 +172,17 @@ def lod_kappa(settings: RenderSettings, parts: LensParts | None = None) -> float
     return settings.lod_blur_fraction * (1.0 if parts is None else parts.rho ** 2)
 
 
+def aperture_variance(lens) -> float:
+    """The variance per axis of the aperture's image at radius 1, the kernel's disc or
+    polygon (``subaperture.aperture_second_moment`` / 2): 1/4 for the disc; what an LOD
+    node's colour slope counts for it (``ewa.color_slope``)."""
+    from .splat.subaperture import aperture_second_moment
+
+    if lens is None or getattr(lens, "bokeh", "gaussian") != "disc":
+        return 0.25  # no aperture in the kernel (its radius is 0): any value
+    return 0.5 * aperture_second_moment("disc", getattr(lens, "blades", 0))
+
+
 def aperture_shape(lens, settings: RenderSettings):
     """(disc, blades, table, moments): whether kernels carry the aperture's shape
     (splat/bokeh.py), the (N, 2) edge normals of a polygonal aperture ((0, 2) for a round

@@ -81,7 +81,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
                                 EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GREEN, GX,
                                 GY, GZX, GZY, MIX, MX, MY, N_FIELDS, RAD, REACH, RED, RX, RY, X0,
                                 X1, ZHI, ZLO)
-    from .frame import aperture_shape, kernel_floor
+    from .frame import aperture_shape, aperture_variance, kernel_floor
 
     n = len(surfels)
     c = float(settings.cutoff)
@@ -199,7 +199,8 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
             cov_cs = (g @ np.stack([uw, vw])) @ G.T  # (3 channels, 2 screen axes)
             if gain is not None:
                 cov_cs = cov_cs * np.asarray(gain[k], np.float64)[:, None]
-            slope = cov_cs @ np.linalg.inv(W + radius ** 2 / 4 * np.eye(2))
+            # the kernel's covariance: W and the aperture's (a disc: R^2 / 4 per axis)
+            slope = cov_cs @ np.linalg.inv(W + aperture_variance(lens) * radius ** 2 * np.eye(2))
             splats[k, [RX, RY, GX, GY, BX, BY]] = slope.reshape(6)
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True

@@ -46,18 +46,22 @@ MEAN_ABS, MAX_ABS = 1e-3, 1e-2
 
 
 def _layers(n: int) -> ds.Surfels:
-    """A square of n x n opaque disks and, 0.4 in front, a translucent smaller square."""
+    """A square of n x n opaque disks and, 0.4 in front, a translucent smaller square; the
+    colours change across each square, so that LOD nodes carry colour gradients."""
     back = grid_surfels(n=n, spacing=1.0 / n, color=(0.2, 0.5, 0.8))
     front = grid_surfels(n=n // 2, spacing=0.6 / n, z=0.4, color=(0.9, 0.4, 0.1), opacity=0.7,
                          center=(0.2, 0.1))
-    return ds.Surfels(**{f: np.concatenate([getattr(back, f), getattr(front, f)])
-                         for f in ("positions", "normals", "radius", "colors", "opacity")})
+    s = ds.Surfels(**{f: np.concatenate([getattr(back, f), getattr(front, f)])
+                      for f in ("positions", "normals", "radius", "colors", "opacity")})
+    ramp = s.colors + s.positions[:, [0, 1, 0]] * np.array([0.2, 0.2, -0.2], np.float32)
+    return replace(s, colors=np.clip(ramp, 0.0, 1.0).astype(np.float32))
 
 
 # the simulator runs Python per thread: 2 x 2 tiles there, 8 x 6 on a GPU
 N, SIZE = (48, (128, 96)) if GPU else (10, (24, 20))
 # lens diameters: a pinhole, a blur of about 1 pixel, and one that makes the LOD cut select
-# inner nodes (81 of 125 splats in the simulator's scene, 693 of 2,880 in the GPU's)
+# inner nodes at the paper's stop, lod_blur_fraction=1 (81 of 125 splats in the simulator's
+# scene, 32 of them inner nodes; 693 of 2,880 in the GPU's)
 APERTURES = (0.0, 0.5, 2.0)
 
 
@@ -170,7 +174,7 @@ def test_lod_cut_and_projection_match_cpu(scene):
     from dofsplat.render import lod_tree, project, select
 
     surfels, camera = scene
-    settings = ds.RenderSettings()
+    settings = ds.RenderSettings(lod_blur_fraction=1.0)  # the paper's stop: inner nodes here
     lens = _lens(2.0)
     tree = lod_tree(surfels)
     cpu_src = select(surfels, camera, lens, settings, tree)
@@ -195,6 +199,9 @@ def test_lod_cut_and_projection_match_cpu(scene):
     # the CPU keeps its rows in float32 (backends.cpu.project), the GPU in float64: the
     # same maths, compared at float32's precision (a rounding step, 6e-8 relative)
     g = g_splats.copy_to_host()[visible]
+    from dofsplat.splat.project import BY, RX
+    assert (cpu_src.level > 0).sum() > 10  # inner nodes, and their colour slopes, are compared
+    assert np.abs(splats[visible][:, RX:BY + 1]).max() > 1e-4
     assert splats.dtype == np.float32
     np.testing.assert_allclose(g.astype(np.float32), splats[visible], rtol=2e-7, atol=1e-30)
 

@@ -308,8 +308,8 @@ def test_node_colour_gradients_keep_a_checkers_edges():
         full = ds.render(s, cam, lens, ds.RenderSettings(lod=False)).image
         lod = ds.render(s, cam, lens, ds.RenderSettings(), tree).image
         assert psnr(lod, full) > bound, aperture
-        # the test can tell: without the gradients the same cut misses the bound
-        assert psnr(ds.render(s, cam, lens, ds.RenderSettings(), flat).image, full) < bound - 3
+        # the test can tell: without the gradients the same cut misses the bound by 2 dB
+        assert psnr(ds.render(s, cam, lens, ds.RenderSettings(), flat).image, full) < bound - 2
 
 
 def _cut(tree, s, cam, lens):
@@ -325,8 +325,8 @@ def _cut(tree, s, cam, lens):
     return np.flatnonzero(flags == 1)
 
 
-@pytest.mark.parametrize("bokeh", ["gaussian", "disc"])
-def test_node_splats_equal_the_numpy_twin(bumpy, bokeh):
+@pytest.mark.parametrize("bokeh, blades", [("gaussian", 0), ("disc", 0), ("disc", 6)])
+def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
     """Projection of an LOD cut (anisotropic V^q through circumellipse, shaded colour
     gradients) and its rasterisation against slow.py."""
     from dofsplat.backends.cpu import shade_splats
@@ -336,7 +336,7 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh):
 
     s, tree = bumpy
     cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
-    lens = ds.ThinLens(focus_distance=1.5, aperture=0.3, bokeh=bokeh)
+    lens = ds.ThinLens(focus_distance=1.5, aperture=0.3, bokeh=bokeh, blades=blades)
     st = ds.RenderSettings(lod_blur_fraction=1.0)  # select_splats' default stop, below
     src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
     inner = src.level > 0
@@ -356,7 +356,7 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh):
     np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=2e-4, atol=1e-6)
     # the nodes carry colour slopes (the surfels' colours are random), the leaves none
     slopes = np.abs(fast[0][:, RX:BY + 1])
-    assert slopes[vis & inner].max() > 1e-3 and slopes[~inner].max() == 0
+    assert slopes[vis & inner].max() > 1e-3 and slopes[vis & ~inner].max() == 0
     # the rasteriser on these splats, its colour slopes included
     res = ds.render(s, cam, lens, st, tree)
     assert res.stats["splats_selected"] == src.size

@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from ..camera import Camera, ThinLens
-from ..frame import (RenderResult, RenderSettings, aperture_shape, coc_coefficients,
+from ..frame import (RenderResult, RenderSettings, aperture_shape, aperture_variance,
+                     coc_coefficients,
                      front_pass, kernel_floor, lens_parts, lod_kappa, lod_level_colors,
                      lod_tree, merge_parameters)
 from ..surfels import Surfels
@@ -256,7 +257,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     if source.color_grad.shape[0] == n and not settings.show_lod:  # show_lod: flat colours
         slope_splats(source.positions, source.normals, source.color_grad,
                      np.ones((0, 3), np.float32) if gain is None else gain, view, ax, ay,
-                     splats, visible)
+                     aperture_variance(lens), splats, visible)
     return splats, bbox, visible
 
 

@@ -249,10 +249,11 @@ def _shade(positions, normals, colors, eye, kinds, vecs, cols, ka, kd, ks, shini
 
 
 @cuda.jit
-def _slope(positions, normals, color_grad, gain, view_t, ax, ay, out, visible):
+def _slope(positions, normals, color_grad, gain, view_t, ax, ay, ap_var, out, visible):
     k = cuda.grid(1)
     if k < positions.shape[0]:
-        _slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible)
+        _slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, ap_var, out,
+                     visible)
 
 
 @cuda.jit
@@ -656,7 +657,7 @@ def shade_cuda(source: SplatSource, camera, settings):
 
 def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
     """EWA projection with the DOF blur on the GPU: splats, bbox, visible (backends.cpu.project's twin)."""
-    from ..frame import aperture_shape, coc_coefficients, kernel_floor
+    from ..frame import aperture_shape, aperture_variance, coc_coefficients, kernel_floor
 
     n = source.size
     splats = _WS.get("splats", (n, N_FIELDS), np.float64)
@@ -680,7 +681,8 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
             if gain is None:
                 gain = _WS.get("gain.none", (0, 3), np.float32)
             _slope[_blocks(n), THREADS](source.positions, source.normals, source.color_grad, gain,
-                                        view_t, ax, ay, splats, visible)
+                                        view_t, ax, ay, aperture_variance(lens), splats,
+                                        visible)
     return splats, bbox, visible
 
 

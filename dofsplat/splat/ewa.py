@@ -59,19 +59,21 @@ def tangent_frame(nx, ny, nz):
 
 
 @shared
-def color_slope(p_world, n_world, grad, gain, view, ax, ay, w11, w12, w22, radius):
+def color_slope(p_world, n_world, grad, gain, view, ax, ay, w11, w12, w22, radius, ap_var):
     """A node's colour change per pixel, (r_x, r_y, g_x, g_y, b_x, b_y), for its kernel.
 
     grad: 6-tuple, the node's Cov(colour, position . t) in its world tangent frame
     (``lod/hierarchy.py``'s color_grad: r.u, r.v, g.u, g.v, b.u, b.v); gain: the shading's
     3-tuple factor on the colour (Phong is linear in it); W = (w11, w12, w22) the kernel's
-    Gaussian variance and |radius| its aperture disc's radius (0 for none), pixels.
+    Gaussian variance and |radius| its aperture's radius (0 for none), pixels; ap_var the
+    aperture's variance per axis at radius 1 (1/4 for the disc, (1 + 2 cos^2(pi/n)) / 12 for
+    an n-gon of circumradius 1).
 
     The node stands for surfels spread about its mean, each splatted with the kernel; the
     colour they give at an offset d from the mean is the mean colour plus the colour
     gradient times the expected surfel offset given d, which for Gaussians is
     Cov(surfel, d) W_total^-1 d (docs/maths.md, "A node's colour gradient"): the slope is
-    Cov(colour, screen position) W_total^-1, W_total = W + (R^2 / 4) I the kernel's
+    Cov(colour, screen position) W_total^-1, W_total = W + ap_var R^2 I the kernel's
     covariance (a disc of radius R has variance R^2 / 4 per axis).
     """
     px = view[0] * p_world[0] + view[1] * p_world[1] + view[2] * p_world[2] + view[3]
@@ -87,7 +89,7 @@ def color_slope(p_world, n_world, grad, gain, view, ax, ay, w11, w12, w22, radiu
     cvz = view[8] * vx + view[9] * vy + view[10] * vz
     j11, j21 = jacobian_column(px, py, pz, cux, cuy, cuz, ax, ay)
     j12, j22 = jacobian_column(px, py, pz, cvx, cvy, cvz, ax, ay)
-    extra = 0.25 * radius * radius
+    extra = ap_var * radius * radius
     t11, t12, t22 = w11 + extra, w12, w22 + extra
     inv = 1.0 / (t11 * t22 - t12 * t12)
     i11, i12, i22 = t22 * inv, -t12 * inv, t11 * inv

@@ -158,22 +158,24 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def slope_splats(positions, normals, color_grad, gain, view, ax, ay, out, visible):
+def slope_splats(positions, normals, color_grad, gain, view, ax, ay, ap_var, out, visible):
     """The LOD nodes' colour slopes (fields RX..BY, ``ewa.color_slope``) of splats that
     ``project_splats`` filled: color_grad (N, 6) the nodes' colour gradients
     (``lod/hierarchy.py``; zero rows for surfels), gain (N, 3) the shading's factor on the
-    colour (``splat/shade.py``) or (0, 3) for 1.
+    colour (``splat/shade.py``) or (0, 3) for 1; ap_var: the aperture's variance per axis at
+    radius 1 (``ewa.color_slope``).
 
     A pass of its own: in project_splat's loop the extra arrays cost the projection of every
     frame 60 % more (bench/RESULTS.md), with or without nodes."""
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     for k in numba.prange(positions.shape[0]):
-        slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible)
+        slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, ap_var, out,
+                    visible)
 
 
 @numba.njit(cache=True, nogil=True)
-def slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, visible):
+def slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, ap_var, out, visible):
     """Splat k of ``slope_splats``; shared with the CUDA backend, one thread per splat."""
     if not visible[k]:
         return
@@ -191,7 +193,7 @@ def slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, out, vi
     p = (np.float64(positions[k, 0]), np.float64(positions[k, 1]), np.float64(positions[k, 2]))
     nn = (np.float64(normals[k, 0]), np.float64(normals[k, 1]), np.float64(normals[k, 2]))
     sl = color_slope(p, nn, g, gn, view_t, ax, ay, c22 * inv, -c12 * inv, c11 * inv,
-                     abs(np.float64(out[k, RAD])))
+                     abs(np.float64(out[k, RAD])), ap_var)
     out[k, RX] = sl[0]
     out[k, RY] = sl[1]
     out[k, GX] = sl[2]
