@@ -15,11 +15,12 @@ import numpy as np
 from .camera import Camera
 from .errors import DofsplatError
 from .shading import HEADLIGHT, Light
+from .splat.subaperture import (MAX_LENS_SAMPLES, ResidualLens, aperture_second_moment,
+                                subaperture_pattern)
 from .surfels import Surfels
 
 DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
 RECONSTRUCTIONS = ("soft", "paper")
-MAX_LENS_SAMPLES = 64  # RenderSettings.lens_samples at most
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,6 @@ def lens_parts(camera: Camera, lens, settings: RenderSettings) -> LensParts | No
     """The lens's parts, or None when the frame is one pass: a pinhole, ``dof`` off,
     ``lens_samples`` 1 or ``show_lod``."""
     from .camera import effective_diameter, lens_camera
-    from .splat.subaperture import ResidualLens, aperture_second_moment, subaperture_pattern
 
     if lens is None or not settings.dof or settings.show_lod or settings.lens_samples == 1:
         return None
@@ -176,8 +176,6 @@ def aperture_variance(lens) -> float:
     """The variance per axis of the aperture's image at radius 1, the kernel's disc or
     polygon (``subaperture.aperture_second_moment`` / 2): 1/4 for the disc; what an LOD
     node's colour slope counts for it (``ewa.color_slope``)."""
-    from .splat.subaperture import aperture_second_moment
-
     if lens is None or getattr(lens, "bokeh", "gaussian") != "disc":
         return 0.25  # no aperture in the kernel (its radius is 0): any value
     return 0.5 * aperture_second_moment("disc", getattr(lens, "blades", 0))

@@ -38,7 +38,7 @@ import math
 
 import numpy as np
 
-from ..frame import MAX_LENS_SAMPLES
+MAX_LENS_SAMPLES = 64  # RenderSettings.lens_samples at most
 
 
 def aperture_second_moment(bokeh: str, blades: int) -> float:
