@@ -279,6 +279,22 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
     return tree
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def push_children(stack, top, i, s, m):
+    """Push the children of node i (first leaf s, m > 1 surfels) on a walk's stack, rows of
+    (node, first leaf, count) in its first three columns, the right child first (visited
+    second); returns the new top. The one place that says how a node's surfels split: the
+    left child i + 1 takes the first m // 2, the right child i + 2 (m // 2) the rest."""
+    h = m // 2
+    stack[top, 0] = i + 2 * h
+    stack[top, 1] = s + h
+    stack[top, 2] = m - h
+    stack[top + 1, 0] = i + 1
+    stack[top + 1, 1] = s
+    stack[top + 1, 2] = h
+    return top + 2
+
+
 @numba.njit(cache=True, nogil=True)
 def tree_shape(n_surfels):
     """(start, count), (2N - 1,) int32 each: every node's first leaf-order position and
@@ -299,14 +315,7 @@ def tree_shape(n_surfels):
         start[i] = s
         count[i] = m
         if m > 1:
-            h = m // 2
-            stack[top, 0] = i + 2 * h
-            stack[top, 1] = s + h
-            stack[top, 2] = m - h
-            stack[top + 1, 0] = i + 1
-            stack[top + 1, 1] = s
-            stack[top + 1, 2] = h
-            top += 2
+            top = push_children(stack, top, i, s, m)
     return start, count
 
 

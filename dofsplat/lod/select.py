@@ -33,6 +33,7 @@ import math
 import numba
 import numpy as np
 
+from .hierarchy import push_children
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, tangent_from_normal)
 
@@ -173,16 +174,9 @@ def _walk(root, root_start, root_count, root_depth, max_depth, center, bound, ex
                           cutoff, thr2, kappa, cull_backfaces)
         flags[i] = what
         if what == DESCEND:
-            h = m // 2
-            stack[top, 0] = i + 2 * h  # right child, visited second
-            stack[top, 1] = s + h
-            stack[top, 2] = m - h
             stack[top, 3] = d + 1
-            stack[top + 1, 0] = i + 1
-            stack[top + 1, 1] = s
-            stack[top + 1, 2] = h
             stack[top + 1, 3] = d + 1
-            top += 2
+            top = push_children(stack, top, i, s, m)
     return n_pending
 
 
@@ -233,14 +227,7 @@ def cut_nodes(flags, n_surfels):
             count[t] = m
             t += 1
         elif f == DESCEND:
-            h = m // 2
-            stack[top, 0] = i + 2 * h
-            stack[top, 1] = s + h
-            stack[top, 2] = m - h
-            stack[top + 1, 0] = i + 1
-            stack[top + 1, 1] = s
-            stack[top + 1, 2] = h
-            top += 2
+            top = push_children(stack, top, i, s, m)
     return nodes, start, count
 
 
