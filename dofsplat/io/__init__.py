@@ -17,7 +17,7 @@ from typing import Callable
 
 from ..errors import DofsplatError
 from ..surfels import Surfels
-from .colors import linear_to_srgb, srgb_to_linear
+from ..colors import linear_to_srgb, srgb_to_linear
 from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
                      check_writable_path, read_image, write_depth, write_image)
 from .e57 import E57_EXTENSIONS, read_e57

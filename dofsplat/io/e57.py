@@ -62,7 +62,7 @@ def read_e57_points(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import pye57
     except ImportError as e:
         raise DofsplatError(f"{path}: reading E57 needs pye57: pip install 'dofsplat[e57]'") from e
-    from .colors import srgb_to_linear
+    from ..colors import srgb_to_linear
 
     parts = []
     try:

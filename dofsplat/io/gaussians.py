@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import DofsplatError
 from ..surfels import Material, Surfels
-from .colors import srgb_to_linear
+from ..colors import srgb_to_linear
 
 SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
 REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import DofsplatError
-from .colors import linear_to_srgb, srgb_to_linear
+from ..colors import linear_to_srgb, srgb_to_linear
 
 SUPPORTED_IMAGE_EXTENSIONS = (".png", ".npy", ".exr")
 

@@ -62,7 +62,7 @@ def read_las_points(path) -> tuple[np.ndarray, np.ndarray | None, float]:
     coordinate scale of the header) from a LAS / LAZ file."""
     import laspy
 
-    from .colors import srgb_to_linear
+    from ..colors import srgb_to_linear
 
     path = Path(path)
     try:

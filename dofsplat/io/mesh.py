@@ -188,7 +188,7 @@ def _is_placeholder(image) -> bool:
 
 
 def _rgba8_to_linear(rgba) -> np.ndarray:
-    from .colors import srgb_to_linear
+    from ..colors import srgb_to_linear
 
     rgba = np.asarray(rgba, dtype=np.float64) / 255.0
     out = np.ones((len(rgba), 4), np.float32)

@@ -119,7 +119,7 @@ def pcd_points(header: PcdHeader, columns: dict, source: str):
     """(positions (N, 3) float64, colours (N, 3) linear or None, normals or None,
     viewpoint (3,), camera) of the valid points, organised clouds turned into dofsplat's
     frame; camera: ``capture_camera`` for an organised cloud, else None."""
-    from .colors import srgb_to_linear
+    from ..colors import srgb_to_linear
     from .ply import finite_rows
 
     missing = [f for f in ("x", "y", "z") if f not in columns]

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import DofsplatError
 from ..surfels import Material, Surfels
-from .colors import srgb_to_linear
+from ..colors import srgb_to_linear
 from .images import atomic_write
 
 REQUIRED = ("x", "y", "z", "nx", "ny", "nz", "radius")

@@ -52,7 +52,7 @@ import numba
 import numpy as np
 
 from ..errors import DofsplatError
-from ..io.colors import srgb_to_linear
+from ..colors import srgb_to_linear
 from ..surfels import Material, Surfels
 
 DEFAULT_MIN_SAMPLES = 200_000  # default count: the vertex count, but at least this many
