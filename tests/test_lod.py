@@ -86,6 +86,24 @@ def test_every_surfel_sits_in_exactly_one_leaf(bumpy):
     assert tree.depth == math.ceil(math.log2(n)) + 1  # median splits: balanced
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 1000, 1001])
+def test_the_trees_shape_depends_on_n_alone(n):
+    """tree_shape: preorder, each node's surfels split m // 2 left, the rest right; the
+    leaves in preorder are the leaf order 0..n-1, and inner node i's row is i - start[i]."""
+    from dofsplat.lod.hierarchy import tree_shape
+
+    start, count = tree_shape(n)
+    assert len(start) == 2 * n - 1 and start[0] == 0 and count[0] == n
+    inner = np.flatnonzero(count > 1)
+    for i in inner:
+        m, h = count[i], count[i] // 2
+        left, right = i + 1, i + 2 * h
+        assert (start[left], count[left]) == (start[i], h)
+        assert (start[right], count[right]) == (start[i] + h, m - h)
+    np.testing.assert_array_equal(start[count == 1], np.arange(n))
+    np.testing.assert_array_equal(inner - start[inner], np.arange(n - 1))
+
+
 def test_spheres_nest_and_contain_their_disks(bumpy):
     s, tree = bumpy
     tree = by_node(tree, s)
@@ -212,6 +230,12 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
                  view, ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, True, flags)
     chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
+    # cut_nodes reads the same nodes, with the first leaves and counts of the tree's shape
+    from dofsplat.lod.select import cut_nodes
+    nodes, first, counts = cut_nodes(flags, stored.n_surfels)
+    np.testing.assert_array_equal(nodes, chosen)
+    np.testing.assert_array_equal(first, stored.start[chosen])
+    np.testing.assert_array_equal(counts, stored.count[chosen])
     inner = chosen[tree.count[chosen] > 1]
     assert inner.size > 20  # the blur lets the cut stop above the leaves
     covered = np.zeros(len(s), int)
