@@ -37,10 +37,11 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     if parts is None and settings.lod:
         # the cut gathered, shaded and projected a chunk at a time (draw_cut)
         t = time.perf_counter()
-        cut = select_cut(surfels, camera, lens, settings, hierarchy)
+        tree = lod_tree(surfels, hierarchy)
+        cut = select_cut(surfels, camera, lens, settings, tree)
         times["select_ms"] = _ms(t)
-        image, depth, weight, frame_stats = draw_cut(surfels, lod_tree(surfels, hierarchy), cut,
-                                                     camera, blur_lens, settings, times)
+        image, depth, weight, frame_stats = draw_cut(surfels, tree, cut, camera, blur_lens,
+                                                     settings, times)
         n_selected = cut[0].size
     else:
         t = time.perf_counter()

@@ -47,7 +47,7 @@ import numba
 import numpy as np
 from numba import cuda
 
-from ..lod.select import DESCEND, SELECT, gather_splat, visit_node
+from ..lod.select import DESCEND, SELECT, gather_gradient, gather_splat, visit_node
 from ..raster.abuffer import (FRONT_FIELDS, MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE,
                               front_fragments, insert_fragment, resolve_to_image,
                               splat_visibility)
@@ -94,6 +94,7 @@ _slope_splat = device_twin(slope_splat)
 _shade_splat = device_twin(shade_splat)
 _visit_node = device_twin(visit_node)
 _gather_splat = device_twin(gather_splat)
+_gather_gradient = device_twin(gather_gradient)
 _insert_fragment = device_twin(insert_fragment)
 _resolve_to_image = device_twin(resolve_to_image)
 _front_fragments = device_twin(front_fragments)
@@ -214,7 +215,7 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
             out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
             out_grad, out_level, row_start, row_count):
     """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row),
-    and its colour gradient (zero at the leaves; lod/select.py's gather_gradients).
+    and its colour gradient (zero at the leaves; lod/select.py's gather_gradient).
     start, count: every node's (the tree's shape); row_start, row_count: the rows' own,
     filled here (gather_splat reads them by row, as the CPU's cut_nodes gives them)."""
     t = cuda.grid(1)
@@ -226,8 +227,7 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
                       area, sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                       s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
                       out_area, out_cov, out_level)
-        for d in range(6):
-            out_grad[t, d] = color_grad[i - start[i], d] if count[i] > 1 else 0.0
+        _gather_gradient(t, nodes, row_start, row_count, color_grad, out_grad)
 
 
 @cuda.jit

@@ -303,18 +303,23 @@ def gather_splats(nodes, order, start, count, position, normal, color, opacity, 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def gather_gradients(nodes, start, count, color_grad, out):
+    """``gather_gradient`` for every row."""
+    for t in numba.prange(nodes.shape[0]):
+        gather_gradient(t, nodes, start, count, color_grad, out)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def gather_gradient(t, nodes, start, count, color_grad, out):
     """out[t] = the colour gradient of node nodes[t] (first leaf start[t], count count[t]):
     its row of ``color_grad`` (inner nodes only, row i - start), zero for a leaf (a surfel's
-    colour is flat)."""
-    for t in numba.prange(nodes.shape[0]):
-        i = nodes[t]
-        if count[t] > 1:
-            r = i - start[t]
-            for d in range(6):
-                out[t, d] = color_grad[r, d]
-        else:
-            for d in range(6):
-                out[t, d] = 0.0
+    colour is flat). Shared with the CUDA backend, one thread per row."""
+    if count[t] > 1:
+        r = nodes[t] - start[t]
+        for d in range(6):
+            out[t, d] = color_grad[r, d]
+    else:
+        for d in range(6):
+            out[t, d] = 0.0
 
 
 @numba.njit(cache=True, nogil=True)
