@@ -206,13 +206,16 @@ def front_pass(merge, settings: RenderSettings) -> bool:
 
 
 def merge_parameters(camera: Camera, lens, settings: RenderSettings) -> tuple[float, float, float, float]:
-    """(K, 1/P, rho0, rho1) of the soft merge (``abuffer.merge_fraction``); K = 0 turns it off.
+    """(K, 1/P, rho0, rho1) of the soft merge (``abuffer.merge_fraction``); K <= 0 turns it
+    off.
 
     The paper's reconstruction, and a pinhole, composite separate surfaces with "over" only.
+    The paper's is K = -1, which also keeps its coverage min(1, w) (``abuffer.sharpness``:
+    a pinhole's sharp surfaces cover their pixel from a weight of COVER_FULL).
     """
     from .raster.abuffer import MERGE_RHO0, MERGE_RHO1
 
     if settings.reconstruction == "paper":
-        return 0.0, 0.0, MERGE_RHO0, MERGE_RHO1
+        return -1.0, 0.0, MERGE_RHO0, MERGE_RHO1
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     return coc_k, inv_focus, MERGE_RHO0, MERGE_RHO1

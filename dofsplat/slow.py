@@ -225,7 +225,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
                         sharp_visibility: bool = False):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
-    merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K = 0: the paper's "over");
+    merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K <= 0: the paper's "over");
     blades: (N, 2) edge normals of a polygonal aperture (None: round);
     sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility).
     """
@@ -408,33 +408,33 @@ def visibility_reference(s, front, merge, width):
     m = np.array([s[MX], s[MY]])
 
     def pixel(x):
-        j, i = math.floor(x[0]), math.floor(x[1])
-        return i * width + j if 0 <= j < width and 0 <= i < height else None
+        """The pixel where the front is read for point x, and the shift to it: beyond the
+        image's edge the front goes on as it is at the edge."""
+        c = np.array([min(max(x[0], 0), width - 0.5), min(max(x[1], 0), height - 0.5)])
+        return math.floor(c[1]) * width + math.floor(c[0]), c - x
 
     removed, hidden = 0.0, 0
     for o in points:
-        p = pixel(m + o)
-        if p is None:
-            continue
+        p, e = pixel(m + o)
         f_depth, f_zhi = front[p, :2]
-        if zlo > f_zhi:
+        if zlo + g @ e > f_zhi:  # its own depth carried along its tangent plane to the edge
             hidden += 1
             removed += merge_fraction_reference(f_depth, s[DEPTH], 1.0, merge)
     removed /= VIS_SAMPLES
     if hidden < VIS_SAMPLES or removed >= 1 or np.linalg.norm(g) >= 1e29:
         return 1 - removed
-    if zlo - MERGE_REACH * np.linalg.norm(g) * (s[COC] + 1) > front[pixel(m), 2]:
+    p, e = pixel(m)
+    if zlo + g @ e - MERGE_REACH * np.linalg.norm(g) * (s[COC] + 1) > front[p, 2]:
         return 1 - removed  # its blurred fragments' z-ranges do not reach the front's
     looks = []
     for n, o in enumerate(points):
-        parallax = (LENS_RING * merge[0] * abs(1 / front[pixel(m + o), 0] - 1 / s[DEPTH])
+        parallax = (LENS_RING * merge[0] * abs(1 / front[pixel(m + o)[0], 0] - 1 / s[DEPTH])
                     + LENS_MARGIN)
         for l in range(LENS_POINTS):
             a = (l + n / VIS_SAMPLES) * 2 * math.pi / LENS_POINTS
             shift = parallax * np.array([math.cos(a), math.sin(a)])
-            x = m + o + shift  # beyond the image's edge the front goes on as at the edge
-            p = pixel((min(max(x[0], 0), width - 0.5), min(max(x[1], 0), height - 0.5)))
-            looks.append(zlo + g @ shift > front[p, 1])
+            p, e = pixel(m + o + shift)
+            looks.append(zlo + g @ (shift + e) > front[p, 1])
     t = float(np.clip((np.mean(looks) - HIDDEN_H0) / (1 - HIDDEN_H0), 0, 1))
     return 1 - max(removed, t * t * (3 - 2 * t))
 
@@ -451,10 +451,26 @@ def _add(dst, src):
     dst[8] = max(dst[8], src[8])
 
 
-def _alpha(s):
+def _alpha(s, merge):
     """A surface's opacity (abuffer.layer_alpha): min(1, w) x mean opacity, at least the
-    coverage of its opaque fragments."""
-    return max(min(1.0, s[0]) * s[4] / s[0], min(1.0, s[6]))
+    coverage of its opaque fragments' weights w_o; where the surface is sharp (CoC radius at
+    its mean depth up to COVER_SHARP_PX, fading out by twice that: abuffer.sharpness), that
+    coverage reaches 1 at w_o = COVER_FULL, rising linearly from w_o at COVER_KNEE."""
+    from .raster.abuffer import COVER_FULL, COVER_KNEE, COVER_SHARP_PX
+
+    coc_k, inv_focus = merge[0], merge[1]
+    d = s[5] / s[0]
+    if coc_k < 0:  # the paper's reconstruction: its own min(1, w)
+        sharp = 0.0
+    elif coc_k == 0 or d <= 0:  # a pinhole
+        sharp = 1.0
+    else:
+        sharp = float(np.clip(2 - coc_k * abs(1 / d - inv_focus) / COVER_SHARP_PX, 0, 1))
+    cover = min(1.0, s[6])
+    if s[6] > COVER_KNEE:
+        knee = float(np.interp(s[6], [COVER_KNEE, COVER_FULL], [COVER_KNEE, 1.0]))
+        cover += sharp * (knee - cover)
+    return max(min(1.0, s[0]) * s[4] / s[0], cover)
 
 
 def _insert(surfaces, frag, max_surfaces):
@@ -510,7 +526,7 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
         for run in runs:
             if run[0] <= 0:
                 continue
-            alpha = _alpha(run)
+            alpha = _alpha(run, merge)
             c += tr * alpha * run[1:4] / run[0]
             tr *= 1 - alpha
         rgb += prob * c
@@ -522,7 +538,7 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
     for s in ss:
         if s[0] <= 0:
             continue
-        alpha = _alpha(s)
+        alpha = _alpha(s, merge)
         if tr * alpha > best:
             best, best_depth = tr * alpha, mean_depth(s)
         tr *= 1 - alpha

@@ -39,7 +39,9 @@ def test_resolve_equals_the_sum_over_partitions(seed):
     surfaces = []
     for i in range(n):
         w = rng.uniform(0.1, 1.5)
-        d = rng.uniform(1.2, 1.9)  # close depths, far from focus: merge fractions in (0, 1)
+        # close depths, far from focus: merge fractions in (0, 1); some near the focus at 3
+        # (CoC under 2 px), where a sharp surface's coverage has its knee (layer_alpha)
+        d = rng.uniform(1.2, 1.9) if rng.uniform() < 0.7 else rng.uniform(2.4, 3.2)
         alpha = 1.0 if rng.uniform() < 0.8 else rng.uniform(0.3, 1)
         rgb = rng.uniform(0, 1, 3)
         # the weight of opaque fragments: all, none, or part (a translucent surface merged
@@ -55,6 +57,31 @@ def test_resolve_equals_the_sum_over_partitions(seed):
     rgba, depth, nearest = _resolve(surfaces, (0.1, 0.2, 0.3), MERGE)
     np.testing.assert_allclose(out[:4], rgba, atol=1e-12)
     assert out[4] == pytest.approx(depth) and out[5] == pytest.approx(nearest)
+
+
+def test_a_sharp_surface_covers_its_pixel_from_cover_full():
+    """abuffer.layer_alpha: a sharp surface's opaque weights w_o cover the pixel from
+    COVER_FULL (0.9) up, linearly from w_o at COVER_KNEE (0.85), and below the knee keep
+    w_o (a rim's share of the pixel); a blurred one (CoC from 2 x COVER_SHARP_PX) keeps
+    min(1, w_o), the share of the lens that sees it; in between linearly in the CoC
+    (abuffer.sharpness). Exact values: the rule is piecewise linear."""
+    from dofsplat.raster.abuffer import (COVER_FULL, COVER_KNEE, COVER_SHARP_PX, layer_alpha,
+                                         sharpness)
+
+    k, inv_p = MERGE[:2]
+    assert sharpness(3.0, k, inv_p) == 1.0 and sharpness(3.0, 0.0, 0.0) == 1.0
+    assert sharpness(3.0, -1.0, 0.0) == 0.0  # the paper's reconstruction: its min(1, w)
+    assert sharpness(1.5, k, inv_p) == 0.0  # C_r = 6.7 px
+    d_half = 1.0 / (inv_p + 1.5 * COVER_SHARP_PX / k)  # C_r = 1.5 px
+    assert sharpness(d_half, k, inv_p) == pytest.approx(0.5, abs=1e-12)
+    mid = 0.5 * (COVER_KNEE + COVER_FULL)
+    for wo, sharp, want in [(0.5, 1.0, 0.5), (COVER_KNEE, 1.0, COVER_KNEE),
+                            (mid, 1.0, 0.5 * (COVER_KNEE + 1.0)), (COVER_FULL, 1.0, 1.0),
+                            (0.95, 1.0, 1.0), (1.3, 1.0, 1.0), (0.95, 0.0, 0.95),
+                            (0.95, 0.5, 0.975), (0.5, 0.0, 0.5)]:
+        assert layer_alpha(wo, wo, wo, sharp) == pytest.approx(want, abs=1e-12)
+    # a translucent surface (no opaque weight) keeps the paper's min(1, w) x mean alpha
+    assert layer_alpha(0.95, 0.95 * 0.5, 0.0, 1.0) == pytest.approx(0.475, abs=1e-12)
 
 
 def test_contact_seam_is_softened():

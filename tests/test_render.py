@@ -27,15 +27,47 @@ def test_grid_in_focus_has_unit_coverage_and_exact_colour():
     cam = front_camera(96, 96, distance=2.5)
     res = ds.render(s, cam, None, UNLIT)
     # the grid spans pixels 21.5 to 74.5: keep well inside it
-    cov = interior(res.alpha, 28)
-    assert cov.min() > 0.9 and cov.max() <= 1.0
     w = interior(res.weight, 28)
     assert np.all(np.abs(w - 1) < 0.1)
+    # a sum within Section 6.3's 10 % of 1 covers the pixel (abuffer.layer_alpha: nothing
+    # behind a sharp opaque surface shows through its kernels' ripple)
+    cov = interior(res.alpha, 28)
+    assert cov.min() == 1.0
     # over a black background the un-premultiplied colour is the surfel colour exactly
     rgb = interior(res.rgb, 28) / cov[..., None]
     np.testing.assert_allclose(rgb, np.broadcast_to(color, rgb.shape), rtol=1e-5)
     # and outside the model: nothing
     assert res.alpha[:4].max() == 0 and np.isinf(res.depth[:4]).all()
+
+
+def test_a_sharp_opaque_plane_hides_the_plane_behind_it():
+    """The sum of a sharp plane's kernels ripples between its splats (the grid above: down
+    to 0.978 inside); with min(1, w) as its opacity a second plane 0.1 behind it showed
+    through by that much (colours off by up to 0.015). abuffer.layer_alpha
+    counts a sharp opaque surface's sum from COVER_FULL up as covering: the front colour exactly
+    (float32's 1e-6)."""
+    front = grid_surfels(n=48, spacing=1.0 / 48, color=(0.8, 0.1, 0.1))
+    rear = grid_surfels(n=48, spacing=1.0 / 48, z=-0.1, color=(0.1, 0.8, 0.1))
+    res = ds.render(concatenate([front, rear]), front_camera(96, 96, distance=2.5), None, UNLIT)
+    np.testing.assert_allclose(interior(res.rgb, 28), 0 * interior(res.rgb, 28) + (0.8, 0.1, 0.1),
+                               atol=1e-6)
+
+
+def test_a_plane_hidden_beyond_the_frame_edge_stays_hidden():
+    """Two planes 0.03 apart, both blurred by a CoC of 9.4 px (parallax 0.17 px: one layer
+    through the lens), larger than the frame. The rear one is hidden from the whole lens and
+    removed (abuffer.splat_visibility); its splats beyond the frame's edge, whose blur
+    reaches in, used to be kept (their sample points fell off the front map) and merged
+    into the front: green up to 0.39 in the corners and 0.135 inside, where the front's
+    colour has 0.1. The front map now goes on at the edge as it is there: the front's
+    colour exactly (float32's 1e-6)."""
+    front = grid_surfels(n=160, spacing=1.0 / 48, color=(0.8, 0.1, 0.1))
+    rear = grid_surfels(n=160, spacing=1.0 / 48, z=-0.03, color=(0.1, 0.8, 0.1))
+    lens = ds.ThinLens(focus_distance=1.5, aperture=0.8)
+    res = ds.render(concatenate([front, rear]), front_camera(64, 64, distance=2.5), lens, UNLIT)
+    assert res.alpha.min() > 0.9999
+    np.testing.assert_allclose(res.rgb / res.alpha[..., None], 0 * res.rgb + (0.8, 0.1, 0.1),
+                               atol=1e-6)
 
 
 def checker_plane(n=64, spacing=1.0 / 32, z=0.0):

@@ -43,6 +43,16 @@ RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
 OPAQUE = 0.95
 FRONT_CUTOFF = 2.0
 FRONT_FIELDS = 3  # the front map's floats per pixel (front_fragments)
+# A sharp opaque surface's weights sum to 1 only on average: the sum of its splats' kernels
+# ripples by a few per cent between them (down to 0.92 over the magnified floor of the
+# fidelity suite's pinhole frames), and min(1, w) would let what lies behind show through
+# that much. Its coverage counts the weights of sharp opaque fragments x 1 / COVER_FULL, so
+# a sum from COVER_FULL up covers the pixel; the gain fades out as the splat's CoC grows from
+# COVER_SHARP_PX to twice that, where blurred kernels overlap enough to sum to 1 and a
+# blurred rim's weights are the share of the lens that sees it (docs/maths.md, "Coverage")
+COVER_FULL = 0.9
+COVER_KNEE = 0.85
+COVER_SHARP_PX = 1.0
 # the merge band: two surfaces whose parallax ratio rho = (Delta + 1 px) / max(C_r) is below
 # MERGE_RHO0 merge, above MERGE_RHO1 stay separate, smoothly in between (docs/maths.md)
 MERGE_RHO0 = 0.15
@@ -185,12 +195,32 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def layer_alpha(w, wa, wo):
+def sharpness(d, coc_k, inv_focus):
+    """How sharp a surface at depth d is, for its coverage (``layer_alpha``): 1 up to a
+    CoC radius of COVER_SHARP_PX, 0 from twice that, linear between; 1 in a pinhole frame
+    (coc_k = 0); 0 in the paper's reconstruction (coc_k < 0, ``frame.merge_parameters``),
+    whose coverage is the paper's min(1, w)."""
+    if coc_k < 0.0:
+        return 0.0
+    if coc_k == 0.0 or d <= 0.0:
+        return 1.0
+    c = coc_k * abs(1.0 / d - inv_focus)
+    return min(max(2.0 - c / COVER_SHARP_PX, 0.0), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def layer_alpha(w, wa, wo, sharp):
     """A surface's opacity from its sums of weights w, weighted opacities wa and weights of
-    opaque fragments wo: the paper's min(1, w) x wa / w, and at least min(1, wo), the
-    coverage of its opaque fragments (a translucent surface merged with an opaque one
-    where they touch does not let the background through)."""
-    return max(min(1.0, w) * wa / w, min(1.0, wo))
+    opaque fragments wo, and its ``sharpness``: the paper's min(1, w) x wa / w, and at
+    least the coverage of its opaque fragments (a translucent surface merged with an
+    opaque one where they touch does not let the background through): min(1, wo), and
+    for a sharp surface a sum from COVER_FULL up covers the pixel (its kernels' ripple),
+    rising from wo at COVER_KNEE (a rim's weights below it are kept)."""
+    cover = min(1.0, wo)
+    if sharp > 0.0 and wo > COVER_KNEE:
+        knee = min(1.0, COVER_KNEE + (wo - COVER_KNEE) * ((1.0 - COVER_KNEE) / (COVER_FULL - COVER_KNEE)))
+        cover += sharp * (knee - cover)
+    return max(min(1.0, w) * wa / w, cover)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -276,6 +306,19 @@ def disk_point(s, l11, l21, l22):
     return l11 * ux, l21 * ux + l22 * uy
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def edge_clamp(x, y, width, height):
+    """Where the front is read for a point (x, y) of the image plane: the point itself,
+    or beyond the image's edge the nearest point of the edge (the front is taken to go on
+    as it is there). Returns the pixel (i, j) and the shift (ex, ey) from the point to
+    where it is read, (0, 0) inside the image."""
+    cx = min(max(x, 0.0), width - 0.5)
+    cy = min(max(y, 0.0), height - 0.5)
+    ex = cx - x if cx != x else 0.0
+    ey = cy - y if cy != y else 0.0
+    return int(math.floor(cy)), int(math.floor(cx)), ex, ey
+
+
 @numba.njit(cache=True, nogil=True)
 def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1):
     """The share of splat k that survives the front pass, in [0, 1] (docs/maths.md).
@@ -309,12 +352,12 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     hidden = 0
     for s in range(VIS_SAMPLES):
         dx, dy = disk_point(s, l11, l21, l22)
-        j = int(math.floor(mx + dx))
-        i = int(math.floor(my + dy))
-        if j < 0 or i < 0 or j >= width or i >= height:
-            continue
+        # a point beyond the image's edge (a splat whose blur reaches into the frame) is
+        # compared with the front at the edge, its own depth carried there along its
+        # tangent plane
+        i, j, ex, ey = edge_clamp(mx + dx, my + dy, width, height)
         p = i * width + j
-        if zlo > front[p, 1]:
+        if zlo + gx * ex + gy * ey > front[p, 1]:
             hidden += 1
             removed += merge_fraction(front[p, 0], depth, 1.0, coc_k, inv_focus, rho0, rho1)
     removed /= VIS_SAMPLES
@@ -324,8 +367,8 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     # A-buffer unites the z-ranges of the fragments a blur brings to a pixel, which span a
     # surface's depths over its CoC and, merge after merge, beyond): they would merge with
     # the front's. Behind a front they cannot reach, "over" hides it as it should
-    centre = int(math.floor(my)) * width + int(math.floor(mx))
-    if zlo - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[centre, 2]:
+    i, j, ex, ey = edge_clamp(mx, my, width, height)
+    if zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[i * width + j, 2]:
         return 1.0 - removed
     # hidden where the pinhole looks: is it hidden from the whole lens? Its own surface,
     # extended along its tangent plane, must not hide it (a convex surface curves away
@@ -334,17 +377,15 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     seen = 0
     for s in range(VIS_SAMPLES):
         dx, dy = disk_point(s, l11, l21, l22)
-        j = int(math.floor(mx + dx))
-        i = int(math.floor(my + dy))
+        i, j, ex, ey = edge_clamp(mx + dx, my + dy, width, height)
         parallax = LENS_RING * coc_k * abs(1.0 / front[i * width + j, 0] - 1.0 / depth) + LENS_MARGIN
         for l in range(LENS_POINTS):
             a = (l + s / VIS_SAMPLES) * (2.0 * math.pi / LENS_POINTS)
             ox, oy = parallax * math.cos(a), parallax * math.sin(a)
             # beyond the image's edge the front is taken to go on as it is at the edge
-            j = min(max(int(math.floor(mx + dx + ox)), 0), width - 1)
-            i = min(max(int(math.floor(my + dy + oy)), 0), height - 1)
+            i, j, ex, ey = edge_clamp(mx + dx + ox, my + dy + oy, width, height)
             looks += 1
-            if zlo + gx * ox + gy * oy <= front[i * width + j, 1]:
+            if zlo + gx * (ox + ex) + gy * (oy + ey) <= front[i * width + j, 1]:
                 seen += 1
     h = 1.0 - seen / looks
     t = min(max((h - HIDDEN_H0) / (1.0 - HIDDEN_H0), 0.0), 1.0)
@@ -417,7 +458,7 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
     scratch[f0 + 4 * n + 3] = 1.0
     for a in range(n - 1, -1, -1):
         prob = 1.0
-        sw = sr = sg = sb = sa = so = 0.0
+        sw = sr = sg = sb = sa = so = sd = 0.0
         fr = fg = fb = ft = 0.0
         for b in range(a, n):
             i = order[b]
@@ -427,12 +468,13 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
             sb += acc[p, i, S_WB]
             sa += acc[p, i, S_WA]
             so += acc[p, i, S_WO]
+            sd += acc[p, i, S_WD]
             end = prob * (1.0 - scratch[ns + b]) if b < n - 1 else prob
             if end > 0.0:
                 alpha = 0.0
                 cr = cg = cb = 0.0
                 if sw > 0.0:
-                    alpha = layer_alpha(sw, sa, so)
+                    alpha = layer_alpha(sw, sa, so, sharpness(sd / sw, coc_k, inv_focus))
                     cr, cg, cb = alpha * sr / sw, alpha * sg / sw, alpha * sb / sw
                 nxt = f0 + 4 * (b + 1)
                 fr += end * (cr + (1.0 - alpha) * scratch[nxt])
@@ -456,7 +498,8 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
         w = acc[p, i, S_W]
         if w <= 0.0:
             continue
-        alpha = layer_alpha(w, acc[p, i, S_WA], acc[p, i, S_WO])
+        alpha = layer_alpha(w, acc[p, i, S_WA], acc[p, i, S_WO],
+                            sharpness(scratch[m], coc_k, inv_focus))
         if trans * alpha > best:
             best = trans * alpha
             best_depth = scratch[m]
