@@ -236,7 +236,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
     blades = np.zeros((0, 2)) if blades is None else blades
 
     splats = splats.copy()
-    if merge[0] > 0 or sharp_visibility:
+    if merge[0] > 0 or (sharp_visibility and merge[0] >= 0):  # K < 0: the paper's, no front pass
         front = front_reference(splats, visible, width, height)
         for k in np.flatnonzero(visible):
             splats[k, AMP] *= visibility_reference(splats[k], front, merge, width)
@@ -409,9 +409,13 @@ def visibility_reference(s, front, merge, width):
 
     def pixel(x):
         """The pixel where the front is read for point x, and the shift to it: beyond the
-        image's edge the front goes on as it is at the edge."""
-        c = np.array([min(max(x[0], 0), width - 0.5), min(max(x[1], 0), height - 0.5)])
+        image's edge the front goes on as it is at the centre of the nearest edge pixel."""
+        c = np.array([0.5 if x[0] < 0 else width - 0.5 if x[0] >= width else x[0],
+                      0.5 if x[1] < 0 else height - 0.5 if x[1] >= height else x[1]])
         return math.floor(c[1]) * width + math.floor(c[0]), c - x
+
+    if not np.all(np.isfinite(m)):
+        return 1.0
 
     removed, hidden = 0.0, 0
     for o in points:
@@ -467,7 +471,7 @@ def _alpha(s, merge):
     else:
         sharp = float(np.clip(2 - coc_k * abs(1 / d - inv_focus) / COVER_SHARP_PX, 0, 1))
     cover = min(1.0, s[6])
-    if s[6] > COVER_KNEE:
+    if sharp > 0 and s[6] > COVER_KNEE:
         knee = float(np.interp(s[6], [COVER_KNEE, COVER_FULL], [COVER_KNEE, 1.0]))
         cover += sharp * (knee - cover)
     return max(min(1.0, s[0]) * s[4] / s[0], cover)

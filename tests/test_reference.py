@@ -174,7 +174,8 @@ def references():
 # (focus, aperture) -> PSNR of ours against the 64-sample reference, measured with LOD (the
 # default) and without (dB); the 256-sample reference gives the same to within 0.3 dB
 # (with the aperture's disc; the paper's Gaussian: 49.2, 50.2, 42.9 dB, no LOD; before a sharp
-# surface covered its pixel, abuffer.layer_alpha: 51.3, 51.9, 47.9 dB, LOD and no LOD alike)
+# surface covered its pixel, abuffer.layer_alpha: 51.3, 51.9, 47.9 dB, LOD and no LOD alike,
+# which the (2.0, 0.2) row's bound rejects; tests/test_render.py tests that rule itself)
 OURS_MEASURED = {
     (2.0, 0.1): (53.3, 53.3),  # focus on the plane, occluder C_r = 3.3 px
     (2.0, 0.2): (56.8, 56.8),  # occluder C_r = 6.6 px

@@ -21,7 +21,8 @@ def interior(a, margin):
 
 
 def test_grid_in_focus_has_unit_coverage_and_exact_colour():
-    """radius = spacing: interior coverage 1 +- 0.1 (Section 6.3's target) and the exact colour."""
+    """radius = spacing: interior weights 1 +- 0.1 (Section 6.3's target), so coverage 1
+    (abuffer.layer_alpha), and the exact colour."""
     color = np.array([0.6, 0.3, 0.2])
     s = grid_surfels(n=48, spacing=1.0 / 48, color=color)
     cam = front_camera(96, 96, distance=2.5)

@@ -12,8 +12,9 @@ small A-buffer of its own that holds up to MAX_SURFACES surfaces per pixel:
 * otherwise it starts a new surface; when all MAX_SURFACES are taken it merges into the one
   whose z-range is nearest (a documented approximation; counted in the stats);
 * resolve: surfaces front to back by their mean depth, each with colour sum(wc)/sum(w) and
-  alpha min(1, sum(w)) x sum(w alpha)/sum(w), at least min(1, sum(w) of its opaque
-  fragments) (``layer_alpha``), composited with "over", background last.
+  alpha min(1, sum(w)) x sum(w alpha)/sum(w), at least the coverage of its opaque
+  fragments: min(1, their sum of weights), reaching 1 from a sum of COVER_FULL where the
+  surface is sharp (``layer_alpha``), composited with "over", background last.
 
 Fragments reach a pixel in splat-index order whatever the thread count, so the image does
 not depend on the number of threads.
@@ -46,10 +47,12 @@ FRONT_FIELDS = 3  # the front map's floats per pixel (front_fragments)
 # A sharp opaque surface's weights sum to 1 only on average: the sum of its splats' kernels
 # ripples by a few per cent between them (down to 0.92 over the magnified floor of the
 # fidelity suite's pinhole frames), and min(1, w) would let what lies behind show through
-# that much. Its coverage counts the weights of sharp opaque fragments x 1 / COVER_FULL, so
-# a sum from COVER_FULL up covers the pixel; the gain fades out as the splat's CoC grows from
-# COVER_SHARP_PX to twice that, where blurred kernels overlap enough to sum to 1 and a
-# blurred rim's weights are the share of the lens that sees it (docs/maths.md, "Coverage")
+# that much. A sharp surface's opaque weights w_o cover the pixel from COVER_FULL up,
+# rising linearly from w_o at COVER_KNEE (a rim's share of the pixel below it is kept);
+# the rule fades out as the surface's CoC at its mean depth grows from COVER_SHARP_PX to
+# twice that, where blurred kernels overlap enough to sum to 1 and a blurred rim's weights
+# are the share of the lens that sees it (``layer_alpha``, ``sharpness``; docs/maths.md,
+# "a sharp surface covers its pixel")
 COVER_FULL = 0.9
 COVER_KNEE = 0.85
 COVER_SHARP_PX = 1.0
@@ -309,14 +312,19 @@ def disk_point(s, l11, l21, l22):
 @numba.njit(cache=True, nogil=True, inline="always")
 def edge_clamp(x, y, width, height):
     """Where the front is read for a point (x, y) of the image plane: the point itself,
-    or beyond the image's edge the nearest point of the edge (the front is taken to go on
-    as it is there). Returns the pixel (i, j) and the shift (ex, ey) from the point to
-    where it is read, (0, 0) inside the image."""
-    cx = min(max(x, 0.0), width - 0.5)
-    cy = min(max(y, 0.0), height - 0.5)
-    ex = cx - x if cx != x else 0.0
-    ey = cy - y if cy != y else 0.0
-    return int(math.floor(cy)), int(math.floor(cx)), ex, ey
+    or beyond the image's edge the centre of the nearest edge pixel (the front is taken to
+    go on as it is there). Returns the pixel (i, j) and the shift (ex, ey) from the point
+    to where it is read, (0, 0) inside the image. (x, y) must be finite."""
+    cx, cy = x, y
+    if x < 0.0:
+        cx = 0.5
+    elif x >= width:
+        cx = width - 0.5
+    if y < 0.0:
+        cy = 0.5
+    elif y >= height:
+        cy = height - 0.5
+    return int(math.floor(cy)), int(math.floor(cx)), cx - x, cy - y
 
 
 @numba.njit(cache=True, nogil=True)
@@ -336,6 +344,8 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     smoothstep((h - HIDDEN_H0) / (1 - HIDDEN_H0)).
     """
     mx, my = splats[k, MX], splats[k, MY]
+    if not (math.isfinite(mx) and math.isfinite(my)):
+        return 1.0  # nowhere to look (the front map is read at finite points only)
     f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
     det = f11 * f22 - f12 * f12
     # F (the variance) = L L^T: x = L u for u on the unit circle is the 1-sigma ellipse
