@@ -26,7 +26,7 @@ import numba
 import numpy as np
 
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
-from ..splat.ewa import exponent, row_pixel_range, row_span, row_start
+from ..splat.ewa import coc_radius_px, exponent, row_pixel_range, row_span, row_start
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH, F11, F12, F22,
                              FLOOR, GREEN, GX, GY, GZX, GZY, MIX, MX, MY, RAD, RED, RX, RY, X0,
                              X1, ZHI, ZLO)
@@ -207,8 +207,7 @@ def sharpness(d, coc_k, inv_focus):
         return 0.0
     if coc_k == 0.0 or d <= 0.0:
         return 1.0
-    c = coc_k * abs(1.0 / d - inv_focus)
-    return min(max(2.0 - c / COVER_SHARP_PX, 0.0), 1.0)
+    return min(max(2.0 - coc_radius_px(d, coc_k, inv_focus) / COVER_SHARP_PX, 0.0), 1.0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
