@@ -6,6 +6,7 @@
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
+    python bench/profile.py --scenes big --max-splat-rows 1048576   # bands of cut rows
 
 Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
 aperture's disc, soft reconstruction): one warm-up frame (the JIT, the LOD hierarchy), then
@@ -77,17 +78,17 @@ def frames(name: str, aperture: float, repeat: int, settings=None) -> dict:
     return out
 
 
-def big_frame(aperture: float, repeat: int) -> dict:
+def big_frame(aperture: float, repeat: int, settings=None) -> dict:
     """One big frame in this process (called by the subprocess): times and memory."""
     surfels, camera, lens = scene("big")
     lens = dataclasses.replace(lens, aperture=aperture) if aperture > 0 else None
     from dofsplat.lod import hierarchy_for
 
     hierarchy_for(surfels)  # built or loaded before the frame, as a viewer holds it
-    ds.render(surfels, camera, lens)  # the JIT
+    ds.render(surfels, camera, lens, settings)  # the JIT
     before = _status("VmRSS")
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak resident set
-    runs = [ds.render(surfels, camera, lens).stats for _ in range(repeat)]
+    runs = [ds.render(surfels, camera, lens, settings).stats for _ in range(repeat)]
     peak = _status("VmHWM")
     out = {k: statistics.median(r[k] for r in runs) for k in STAGES}
     out.update(fragments=runs[0]["fragments"], splats=runs[0]["splats_rendered"],
@@ -116,10 +117,16 @@ def main(argv=None) -> int:
     ap.add_argument("--sharp-visibility", action="store_true",
                     help="RenderSettings(sharp_visibility=True): what the front pass costs in "
                          "a pinhole frame (its 'front' column)")
+    ap.add_argument("--max-splat-rows", type=int,
+                    help="RenderSettings(max_splat_rows=...): an LOD cut of more splats is "
+                         "projected band by band (default: a quarter of the memory available)")
     ap.add_argument("--big-frame", type=float, help=argparse.SUPPRESS)  # the subprocess
     args = ap.parse_args(argv)
+    settings = ds.RenderSettings(exact_normalization=not args.no_exact,
+                                 sharp_visibility=args.sharp_visibility,
+                                 max_splat_rows=args.max_splat_rows)
     if args.big_frame is not None:
-        print(json.dumps(big_frame(args.big_frame, args.repeat)))
+        print(json.dumps(big_frame(args.big_frame, args.repeat, settings)))
         return 0
     print(f"{numba.get_num_threads()} threads, {os.cpu_count()} cores, numba {numba.__version__}")
     print("| scene | A | splats | fragments | select | shade | project | bin | front | raster "
@@ -130,15 +137,18 @@ def main(argv=None) -> int:
         for a in APERTURES[name]:
             if name == "big":
                 done = subprocess.run([sys.executable, __file__, "--big-frame", str(a),
-                                       "--repeat", str(min(args.repeat, 3))],
+                                       "--repeat", str(min(args.repeat, 3)),
+                                      ]
+                                      + ["--max-splat-rows", str(args.max_splat_rows)] * (
+                                          args.max_splat_rows is not None)
+                                      + ["--no-exact"] * args.no_exact
+                                      + ["--sharp-visibility"] * args.sharp_visibility,
                                       capture_output=True, text=True, check=True)
                 r = json.loads(done.stdout.strip().splitlines()[-1])
                 r["ns_per_fragment_thread"] = (r["raster_ms"] * 1e6 * numba.get_num_threads()
                                                / max(r["fragments"], 1))
             else:
-                r = frames(name, a, args.repeat,
-                           ds.RenderSettings(exact_normalization=not args.no_exact,
-                                             sharp_visibility=args.sharp_visibility))
+                r = frames(name, a, args.repeat, settings)
             r.update(scene=name, aperture=a)
             records.append(r)
             print(f"| {name} | {a:g} | {r['splats']:,} | {r['fragments']:,} | "

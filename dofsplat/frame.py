@@ -8,6 +8,7 @@ frame to a backend; nothing here imports one.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +37,7 @@ class RenderSettings:
     z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
     exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
     max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
+    max_splat_rows: int | None = None  # an LOD cut of more splats is projected band by band, about this many rows (124 B each) at a time, for 1.36-1.47 x the frame's time (backends/cpu.py, draw_cut_banded); None: as many as a quarter of the memory available (splat_rows_budget)
     lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
@@ -60,6 +62,11 @@ class RenderSettings:
             raise DofsplatError(f"z_thickness must be >= 0, got {self.z_thickness}")
         if self.max_tile_pairs < 1:
             raise DofsplatError("max_tile_pairs must be positive")
+        if self.max_splat_rows is not None and (
+                isinstance(self.max_splat_rows, bool)
+                or not isinstance(self.max_splat_rows, (int, np.integer)) or self.max_splat_rows < 1):
+            raise DofsplatError(f"max_splat_rows must be a positive integer or None, got "
+                                f"{self.max_splat_rows!r}")
         if not (math.isfinite(self.lod_pixel_threshold) and self.lod_pixel_threshold >= 0):
             raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
         if not (math.isfinite(self.lod_blur_fraction) and 0 < self.lod_blur_fraction <= 1):
@@ -197,6 +204,38 @@ def aperture_shape(lens, settings: RenderSettings):
 def kernel_floor(settings: RenderSettings) -> float:
     """What a tapered (LOD node's) kernel loses everywhere inside its cutoff: e^-c, else 0."""
     return math.exp(-settings.cutoff) if settings.taper else 0.0
+
+
+SPLAT_ROW_BYTES = 124  # a CPU splat row: N_FIELDS float32 (splat/project.py)
+MIN_SPLAT_ROWS = 1 << 19  # the automatic budget never bands below this (65 MB of rows)
+FALLBACK_MEMORY = 4 << 30  # what the budget assumes is available where it cannot be read
+
+
+def splat_rows_budget(settings: RenderSettings) -> int:
+    """How many splat rows a CPU frame may hold at once (``backends.cpu.draw_cut``):
+    ``settings.max_splat_rows``, or by default as many as fit in a quarter of the memory
+    available now (Linux's MemAvailable; FALLBACK_MEMORY where the system does not say),
+    at least MIN_SPLAT_ROWS. A frame whose LOD cut has more splats is drawn band by band:
+    the same image, bit for bit, in 1.36-1.47 x the time (bench/RESULTS.md)."""
+    if settings.max_splat_rows is not None:
+        return int(settings.max_splat_rows)
+    return max(MIN_SPLAT_ROWS, available_memory() // (4 * SPLAT_ROW_BYTES))
+
+
+def available_memory() -> int:
+    """Bytes of memory available to a new allocation without swapping: /proc/meminfo's
+    MemAvailable on Linux, else the free pages sysconf reports, else FALLBACK_MEMORY."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return FALLBACK_MEMORY
 
 
 def front_pass(merge, settings: RenderSettings) -> bool:

@@ -476,3 +476,77 @@ def test_a_cut_drawn_in_chunks_is_the_cut_drawn_whole(plane_view, monkeypatch, s
     np.testing.assert_array_equal(chunked.image, whole.image)
     np.testing.assert_array_equal(chunked.depth, whole.depth)
     assert chunked.stats["fragments"] == whole.stats["fragments"]
+
+
+@pytest.mark.parametrize("aperture, extra", [(0.0, {}), (0.0, {"show_lod": True}),
+                                             (0.1, {}), (0.0, {"sharp_visibility": True})])
+def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch, aperture,
+                                                         extra):
+    """A cut of more than max_splat_rows nodes is projected band by band
+    (backends.cpu.draw_cut_banded: the boxes and the front pass's disks first, then each
+    band's splats again): the frame is the one-buffer frame bit for bit, with and without
+    the front pass (every band's splats then see the whole front), and no band's rows
+    exceed the budget unless one tile row alone holds more."""
+    from dofsplat.backends import cpu
+
+    s, cam = plane_view
+    lens = ds.ThinLens(focus_distance=3.0, aperture=aperture)
+    whole = ds.render(s, cam, lens, ds.RenderSettings(**extra))
+    assert whole.stats["bands"] == 1
+    monkeypatch.setattr(cpu, "CUT_CHUNK", 3000)  # the first pass in chunks too
+    seen, planned = [], []
+    project_cut, plan_bands = cpu.project_cut, cpu.plan_bands
+
+    def counting(surfels, tree, cut, *args, **kwargs):
+        if not kwargs.get("bbox_only"):
+            seen.append(cut[0].size)
+        return project_cut(surfels, tree, cut, *args, **kwargs)
+
+    def planning(*args, **kwargs):
+        planned.extend(plan_bands(*args, **kwargs))
+        return planned
+
+    monkeypatch.setattr(cpu, "project_cut", counting)
+    monkeypatch.setattr(cpu, "plan_bands", planning)
+    budget = 4000
+    banded = ds.render(s, cam, lens, ds.RenderSettings(max_splat_rows=budget, **extra))
+    assert banded.stats["bands"] == len(planned) >= 4
+    assert whole.stats["splats_selected"] > 3 * budget
+    assert len(seen) == len(planned)  # one projection per band (the front's is the boxes')
+    for (ty0, ty1), m in zip(planned, seen):
+        assert m <= budget or ty1 == ty0 + 1, (ty0, ty1, m)
+    np.testing.assert_array_equal(banded.image, whole.image)
+    np.testing.assert_array_equal(banded.depth, whole.depth)
+    np.testing.assert_array_equal(banded.weight, whole.weight)
+    for key in ("fragments", "tile_pairs", "splats_rendered", "abuffer_overflows"):
+        assert banded.stats[key] == whole.stats[key], key
+
+
+@pytest.mark.parametrize("bad", [0, -5, 2.5, True, "many"])
+def test_max_splat_rows_must_be_a_positive_integer(bad):
+    with pytest.raises(ds.DofsplatError, match="max_splat_rows"):
+        ds.RenderSettings(max_splat_rows=bad)
+
+
+def test_the_automatic_splat_rows_budget_is_a_quarter_of_the_memory_available(
+        plane_view, monkeypatch):
+    """max_splat_rows=None (the default): the frame holds at most a quarter of the memory
+    available in splat rows (frame.splat_rows_budget), never fewer than MIN_SPLAT_ROWS; a
+    cut beyond that is drawn band by band, the same frame."""
+    from dofsplat import frame
+    from dofsplat.splat.project import N_FIELDS
+
+    assert frame.SPLAT_ROW_BYTES == 4 * N_FIELDS  # float32 rows
+    assert frame.splat_rows_budget(ds.RenderSettings(max_splat_rows=123)) == 123
+    assert frame.available_memory() > 0
+    monkeypatch.setattr(frame, "available_memory", lambda: 4 * frame.SPLAT_ROW_BYTES * 10**7)
+    assert frame.splat_rows_budget(ds.RenderSettings()) == 10**7
+    s, cam = plane_view
+    whole = ds.render(s, cam, None)
+    assert whole.stats["bands"] == 1
+    monkeypatch.setattr(frame, "available_memory", lambda: 0)
+    assert frame.splat_rows_budget(ds.RenderSettings()) == frame.MIN_SPLAT_ROWS
+    monkeypatch.setattr(frame, "MIN_SPLAT_ROWS", 5000)
+    banded = ds.render(s, cam, None)
+    assert banded.stats["bands"] > 1
+    np.testing.assert_array_equal(banded.image, whole.image)

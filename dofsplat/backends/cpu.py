@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from ..camera import Camera, ThinLens
 from ..frame import (RenderResult, RenderSettings, aperture_shape, aperture_variance,
                      coc_coefficients,
                      front_pass, kernel_floor, lens_parts, lod_kappa, lod_level_colors,
-                     lod_tree, merge_parameters)
+                     lod_tree, merge_parameters, splat_rows_budget)
 from ..surfels import Surfels
 
 
@@ -92,34 +93,125 @@ def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: Render
     """``draw`` for an LOD cut (``select_cut``: its nodes, first leaves, counts): each CUT_CHUNK
     nodes are gathered (``lod.gather_cut``), shaded and projected into their rows of one
     splat buffer before the next are, so the gathered nodes of the whole cut never exist at
-    once. The splats are those of ``draw(select(...))``, row for row. Adds the gathers and
-    the shading to times["select_ms"] and times["shade_ms"]."""
-    from ..lod import gather_cut
+    once. The splats are those of ``draw(select(...))``, row for row. A cut of more than
+    ``frame.splat_rows_budget`` nodes is drawn band by band instead (``draw_cut_banded``).
+    Adds the gathers and the shading to times["select_ms"] and times["shade_ms"]."""
     from ..splat.project import N_FIELDS
 
     n = cut[0].size
+    budget = splat_rows_budget(settings)
+    if n > budget:
+        return draw_cut_banded(surfels, tree, cut, camera, lens, settings, times, budget)
     workspace = _workspace()
     splats = _buffer(workspace, "splats", (n, N_FIELDS), np.float32)
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
     visible = _buffer(workspace, "visible", (n,), np.bool_)
-    project_ms = shade_ms = 0.0
-    for lo in range(0, n, CUT_CHUNK):
-        hi = min(lo + CUT_CHUNK, n)
+    clock = {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0}
+    project_cut(surfels, tree, cut, camera, lens, settings, (splats, bbox, visible), clock)
+    times["select_ms"] += clock["select_ms"]
+    times["shade_ms"] = clock["shade_ms"]
+    return draw_splats(splats, bbox, visible, camera, lens, settings, clock["project_ms"])
+
+
+def project_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
+                out, clock: dict, bbox_only: bool = False, front=None,
+                chunk: int | None = None):
+    """Gather, shade and project the nodes of ``cut`` ``chunk`` (default CUT_CHUNK) at a
+    time into ``out`` (splats, bbox, visible: one row per node), adding each stage's
+    milliseconds to clock["select_ms"], ["shade_ms"] and ["project_ms"].
+
+    bbox_only: only bbox and visible are wanted (``draw_cut_banded``'s first pass): out's
+    splats may then hold ``chunk`` rows, reused chunk after chunk, and the nodes are
+    neither shaded nor normalised (neither changes a box). front: with bbox_only, the
+    front map (``rasterize``) each chunk's opaque disks are drawn into, its time added to
+    clock["front_ms"]."""
+    from ..lod import gather_cut
+
+    splats, bbox, visible = out
+    n = cut[0].size
+    chunk = CUT_CHUNK if chunk is None else chunk
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
         t = time.perf_counter()
         source = gather_cut(tree, surfels, tuple(a[lo:hi] for a in cut))
         if settings.show_lod:
             source = source._replace(colors=lod_level_colors(source.level))
-        times["select_ms"] += _ms(t)
+        clock["select_ms"] += _ms(t)
         t = time.perf_counter()
-        rgb, gain = shade_splats(source, camera, settings)
-        shade_ms += _ms(t)
-        t = time.perf_counter()
-        project(source, rgb, camera, lens, settings, gain=gain,
-                out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
-        project_ms += _ms(t)
-        del source, rgb, gain
-    times["shade_ms"] = shade_ms
-    return draw_splats(splats, bbox, visible, camera, lens, settings, project_ms)
+        if bbox_only:
+            project(source, source.colors, camera, lens,
+                    replace(settings, exact_normalization=False), slopes=False,
+                    out=(splats[:hi - lo], bbox[lo:hi], visible[lo:hi]))
+            if front is not None:
+                clock["project_ms"] += _ms(t)
+                t = time.perf_counter()
+                front_chunk(splats[:hi - lo], bbox[lo:hi], visible[lo:hi], camera, front)
+                clock["front_ms"] += _ms(t)
+                continue
+        else:
+            rgb, gain = shade_splats(source, camera, settings)
+            clock["shade_ms"] += _ms(t)
+            t = time.perf_counter()
+            project(source, rgb, camera, lens, settings, gain=gain,
+                    out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
+            del rgb, gain
+        clock["project_ms"] += _ms(t)
+        del source
+
+
+def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
+                    settings: RenderSettings, times: dict, budget: int):
+    """``draw_cut`` for a cut of more than ``budget`` nodes (``frame.splat_rows_budget``),
+    with about that many splat rows in memory at once (a pinhole cut of 10 M surfels is
+    5.2 M nodes: 650 MB of rows).
+
+    A first pass projects the whole cut for its splats' boxes only (``project_cut``,
+    bbox_only); the image's tile rows are then cut into bands that each touch at most
+    budget of them (and max_tile_pairs tile pairs); each band's splats are
+    gathered, shaded and projected again, in cut order, and rasterised (``rasterize``'s
+    ``rows``). The first pass also draws the front pass's disks, chunk by chunk
+    (``front_chunk``). A projection is the same arithmetic whichever rows it fills, and the
+    front map takes the least depth whatever the order, so the frame is ``draw_cut``'s bit
+    for bit; it costs a second projection of the cut (without the kernels' normalisation,
+    the shading and the colour slopes) and one more per band boundary a splat spans."""
+    from ..raster.abuffer import FRONT_FIELDS, TILE
+    from ..splat.project import N_FIELDS
+
+    n = cut[0].size
+    bbox = np.empty((n, 4), np.int32)
+    visible = np.empty(n, np.bool_)
+    chunk = min(CUT_CHUNK, budget)  # the first pass's chunks, in the bands' rows
+    rows = np.empty((min(budget, n), N_FIELDS), np.float32)
+    clock = {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0, "front_ms": 0.0}
+    merge = merge_parameters(camera, lens, settings)
+    front = None
+    if front_pass(merge, settings):  # drawn by the first pass, chunk by chunk
+        front = np.full((camera.height * camera.width, FRONT_FIELDS), np.inf, np.float32)
+    project_cut(surfels, tree, cut, camera, lens, settings, (rows, bbox, visible), clock,
+                bbox_only=True, front=front, chunk=chunk)
+    t = time.perf_counter()
+    bands = plan_bands(bbox, visible, camera, settings, max_splats=budget)
+    bin_ms = _ms(t)
+
+    def band_rows(ty0: int, ty1: int):
+        # the band's splats, in cut order: visible, and their rows reach into the band
+        pick = np.flatnonzero(visible & (bbox[:, 2] < ty1 * TILE) & (bbox[:, 3] >= ty0 * TILE))
+        m = pick.size
+        out = (rows[:m] if m <= rows.shape[0] else np.empty((m, N_FIELDS), np.float32),
+               np.empty((m, 4), np.int32), np.empty(m, np.bool_))
+        project_cut(surfels, tree, tuple(a[pick] for a in cut), camera, lens, settings, out,
+                    clock, chunk=chunk)
+        return out
+
+    image, depth, weight, stats = rasterize(None, None, None, bands, camera, settings, merge,
+                                            lens, rows=band_rows, front=front)
+    times["select_ms"] += clock["select_ms"]
+    times["shade_ms"] = clock["shade_ms"]
+    stats["splats_rendered"] = int(np.count_nonzero(visible))
+    stats["project_ms"] = clock["project_ms"]
+    stats["bin_ms"] += bin_ms
+    stats["front_ms"] += clock["front_ms"]
+    return image, depth, weight, stats
 
 
 def draw_splats(splats, bbox, visible, camera: Camera, lens, settings: RenderSettings,
@@ -219,7 +311,7 @@ def shade_splats(source, camera: Camera, settings: RenderSettings):
 
 def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSettings,
             lod_cov: np.ndarray | None = None, workspace: dict | None = None, gain=None,
-            out=None):
+            out=None, slopes: bool = True):
     """EWA projection with the DOF blur (eqs. 8, 11, 12): splats (S, N_FIELDS), bbox, visible.
 
     source: a ``SplatSource`` (its ``lod_cov`` is the LOD filter) or ``Surfels`` (then
@@ -227,7 +319,8 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     workspace: a dict whose arrays the splats may reuse (``render`` keeps one per thread),
     else they are new; gain: (S, 3) the shading's factor on the colour (``shade_splats``),
     applied to the nodes' colour gradients, or None for 1; out: (splats, bbox, visible)
-    arrays of S rows to fill instead (``draw_cut``)
+    arrays of S rows to fill instead (``draw_cut``); slopes: False leaves the nodes'
+    colour slopes unset (a pass for the boxes alone, ``project_cut``)
     """
     from ..splat.project import N_FIELDS, project_splats, slope_splats
     from ..splat.source import from_surfels
@@ -255,22 +348,31 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
                    float(settings.cutoff), float(settings.z_thickness),
                    bool(settings.cull_backfaces), bool(settings.exact_normalization),
                    kernel_floor(settings), disc, blades, moments, splats, bbox, visible)
-    if source.color_grad.shape[0] == n and not settings.show_lod:  # show_lod: flat colours
+    if slopes and source.color_grad.shape[0] == n and not settings.show_lod:  # show_lod: flat colours
         slope_splats(source.positions, source.normals, source.color_grad,
                      np.ones((0, 3), np.float32) if gain is None else gain, view, ax, ay,
                      aperture_variance(lens), splats, visible)
     return splats, bbox, visible
 
 
-def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings) -> list[tuple[int, int]]:
-    """Cut the tile rows into bands whose tile-splat pairs fit the memory budget."""
+def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings,
+               max_splats: int | None = None) -> list[tuple[int, int]]:
+    """Cut the tile rows into bands whose tile-splat pairs fit the memory budget
+    (``settings.max_tile_pairs``) and, given max_splats, that each touch at most that many
+    splats (``draw_cut_banded``). A band is at least one tile row."""
     from ..raster.abuffer import TILE, tile_rows_pairs
 
     n_ty = -(-camera.height // TILE)
     per_row = tile_rows_pairs(bbox, visible, TILE, n_ty)
+    if max_splats is not None:
+        # splats touching tile rows a..b-1: those that begin at or before b - 1, less
+        # those that end before a
+        first = np.bincount(bbox[visible, 2] // TILE, minlength=n_ty).cumsum()
+        last = np.concatenate([[0], np.bincount(bbox[visible, 3] // TILE, minlength=n_ty).cumsum()])
     bands, start, acc = [], 0, 0
     for ty in range(n_ty):
-        if acc and acc + per_row[ty] > settings.max_tile_pairs:
+        if (acc and acc + per_row[ty] > settings.max_tile_pairs) or (
+                max_splats is not None and ty > start and first[ty] - last[start] > max_splats):
             bands.append((start, ty))
             start, acc = ty, 0
         acc += int(per_row[ty])
@@ -279,7 +381,7 @@ def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings) -> list[
 
 
 def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings,
-              merge=(0.0, 0.0, 0.15, 0.5), lens=None):
+              merge=(0.0, 0.0, 0.15, 0.5), lens=None, rows=None, front=None):
     """A-buffer rasterisation and resolve, band by band (Section 6.4).
 
     lens: the lens whose aperture shape the splats carry (``aperture_shape``).
@@ -288,6 +390,10 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     disk, and every splat hidden behind a front of the same layer, or from the whole lens
     (``abuffer.splat_visibility``), gives up that share of its weight (docs/maths.md,
     "Surface reconstruction"). Changes ``splats`` and ``visible`` in place.
+    rows: None, or a function (ty0, ty1) -> (splats, bbox, visible) that projects afresh the
+    splats of each band, in their order (``draw_cut_banded``; splats, bbox and visible are
+    then None, and the time it takes is not counted here); front: the front map, drawn
+    already (``draw_cut_banded``), else it is drawn here when the front pass runs.
     """
     from ..raster.abuffer import (FRONT_FIELDS, TILE, apply_visibility, bin_splats,
                                  front_band, rasterize_band)
@@ -304,23 +410,37 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0
     binned = {}
-    if front_pass(merge, settings):
-        t = time.perf_counter()
+
+    def band(ty0, ty1):
+        return (splats, bbox, visible) if rows is None else rows(ty0, ty1)
+
+    if front is None and front_pass(merge, settings):
         front = np.full((h * w, FRONT_FIELDS), np.inf, np.float32)
         for ty0, ty1 in bands:
-            offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
-            if len(bands) == 1:
+            sp, bb, vis = band(ty0, ty1)
+            t = time.perf_counter()
+            offsets, ids = bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
+            if len(bands) == 1 and rows is None:
                 binned[ty0] = offsets, ids  # one band: bin once for both passes
-            front_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, front)
-        apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
-        front_ms = _ms(t)
+            front_band(sp, bb, offsets, ids, n_tx, ty0, w, h, front)
+            front_ms += _ms(t)
+        if rows is None:
+            t = time.perf_counter()
+            apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
+            front_ms += _ms(t)
     for ty0, ty1 in bands:
+        sp, bb, vis = band(ty0, ty1)
+        if rows is not None and front is not None:
+            # each band's rows are new: the visibility of its splats, from the whole front
+            t = time.perf_counter()
+            apply_visibility(sp, vis, front, w, h, coc_k, inv_focus, rho0, rho1)
+            front_ms += _ms(t)
         t = time.perf_counter()
-        offsets, ids = binned.pop(ty0, None) or bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
+        offsets, ids = binned.pop(ty0, None) or bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
         bin_ms += _ms(t)
         t = time.perf_counter()
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
-        rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
+        rasterize_band(sp, bb, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
                        background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
                        rho1, blades, table, u_c)
         raster_ms += _ms(t)
@@ -331,6 +451,17 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
              "bands": len(bands), "bin_ms": bin_ms, "raster_ms": raster_ms,
              "front_ms": front_ms}
     return image, depth, weight, stats
+
+
+def front_chunk(splats, bbox, visible, camera: Camera, front) -> None:
+    """The front pass's opaque disks of some splats into ``front`` (``rasterize``), binned
+    over the whole image: the map is the same whichever splats come first."""
+    from ..raster.abuffer import TILE, bin_splats, front_band
+
+    n_tx = -(-camera.width // TILE)
+    n_ty = -(-camera.height // TILE)
+    offsets, ids = bin_splats(bbox, visible, TILE, n_tx, 0, n_ty)
+    front_band(splats, bbox, offsets, ids, n_tx, 0, camera.width, camera.height, front)
 
 
 # -- helpers -----------------------------------------------------------------------------
