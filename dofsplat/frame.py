@@ -37,7 +37,7 @@ class RenderSettings:
     z_thickness: float = 0.1  # z-range half-thickness added to each splat, x its radius
     exact_normalization: bool = True  # normalise each kernel by its pixel sum (else 1 - e^-c)
     max_tile_pairs: int = 1 << 26  # binning memory budget (int32 entries) before banding
-    max_splat_rows: int | None = None  # an LOD cut of more splats is projected band by band, about this many rows (124 B each) at a time, for 1.36-1.47 x the frame's time (backends/cpu.py, draw_cut_banded); None: as many as a quarter of the memory available (splat_rows_budget)
+    max_splat_rows: int | None = None  # CPU LOD frames: a cut of more splats is drawn band by band, the same image, slower (splat_rows_budget); None: a quarter of the memory available
     lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
@@ -215,8 +215,9 @@ def splat_rows_budget(settings: RenderSettings) -> int:
     """How many splat rows a CPU frame may hold at once (``backends.cpu.draw_cut``):
     ``settings.max_splat_rows``, or by default as many as fit in a quarter of the memory
     available now (Linux's MemAvailable; FALLBACK_MEMORY where the system does not say),
-    at least MIN_SPLAT_ROWS. A frame whose LOD cut has more splats is drawn band by band:
-    the same image, bit for bit, in 1.36-1.47 x the time (bench/RESULTS.md)."""
+    at least MIN_SPLAT_ROWS. A CPU frame whose LOD cut has more splats is drawn band by
+    band: the same image, bit for bit, slower (docs/maths.md, "Memory and determinism").
+    Frames without LOD or with the lens in parts, and the GPU's, do not use it."""
     if settings.max_splat_rows is not None:
         return int(settings.max_splat_rows)
     return max(MIN_SPLAT_ROWS, available_memory() // (4 * SPLAT_ROW_BYTES))

@@ -484,9 +484,9 @@ def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch
                                                          extra):
     """A cut of more than max_splat_rows nodes is projected band by band
     (backends.cpu.draw_cut_banded: the boxes and the front pass's disks first, then each
-    band's splats again): the frame is the one-buffer frame bit for bit, with and without
-    the front pass (every band's splats then see the whole front), and no band's rows
-    exceed the budget unless one tile row alone holds more."""
+    band's splats again): the frame is the one-buffer frame bit for bit, and no band's
+    rows exceed the budget unless one tile row alone holds more. (The plane hides nothing:
+    the next test covers the front pass.)"""
     from dofsplat.backends import cpu
 
     s, cam = plane_view
@@ -520,6 +520,31 @@ def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch
     np.testing.assert_array_equal(banded.weight, whole.weight)
     for key in ("fragments", "tile_pairs", "splats_rendered", "abuffer_overflows"):
         assert banded.stats[key] == whole.stats[key], key
+
+
+@pytest.mark.parametrize("sharp_visibility", [False, True])
+def test_a_banded_frame_sees_the_whole_front(monkeypatch, sharp_visibility):
+    """Where splats hide behind others (spheres on a floor, blurred; or sharp with
+    sharp_visibility), each band's splats take their visibility from the front map of the
+    whole cut, drawn by the first pass: the banded frame is the one-buffer frame bit for
+    bit, and it would not be without that visibility (the guard: the front pass changes
+    this frame)."""
+    from dofsplat.demo import contact_scene
+    from dofsplat.raster import abuffer
+
+    s, cam, lens = contact_scene(160, 120)
+    if sharp_visibility:
+        lens = None
+    st = ds.RenderSettings(sharp_visibility=sharp_visibility)
+    whole = ds.render(s, cam, lens, st)
+    banded_settings = replace(st, max_splat_rows=3000)
+    banded = ds.render(s, cam, lens, banded_settings)
+    assert whole.stats["bands"] == 1 and banded.stats["bands"] >= 3
+    np.testing.assert_array_equal(banded.image, whole.image)
+    np.testing.assert_array_equal(banded.depth, whole.depth)
+    monkeypatch.setattr(abuffer, "apply_visibility", lambda *args: None)
+    blind = ds.render(s, cam, lens, banded_settings)
+    assert np.abs(blind.image - whole.image).max() > 0.01
 
 
 @pytest.mark.parametrize("bad", [0, -5, 2.5, True, "many"])

@@ -114,17 +114,10 @@ def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: Render
 
 
 def project_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
-                out, clock: dict, bbox_only: bool = False, front=None,
-                chunk: int | None = None):
+                out, clock: dict, chunk: int | None = None):
     """Gather, shade and project the nodes of ``cut`` ``chunk`` (default CUT_CHUNK) at a
     time into ``out`` (splats, bbox, visible: one row per node), adding each stage's
-    milliseconds to clock["select_ms"], ["shade_ms"] and ["project_ms"].
-
-    bbox_only: only bbox and visible are wanted (``draw_cut_banded``'s first pass): out's
-    splats may then hold ``chunk`` rows, reused chunk after chunk, and the nodes are
-    neither shaded nor normalised (neither changes a box). front: with bbox_only, the
-    front map (``rasterize``) each chunk's opaque disks are drawn into, its time added to
-    clock["front_ms"]."""
+    milliseconds to clock["select_ms"], ["shade_ms"] and ["project_ms"]."""
     from ..lod import gather_cut
 
     splats, bbox, visible = out
@@ -138,69 +131,87 @@ def project_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: Ren
             source = source._replace(colors=lod_level_colors(source.level))
         clock["select_ms"] += _ms(t)
         t = time.perf_counter()
-        if bbox_only:
-            project(source, source.colors, camera, lens,
-                    replace(settings, exact_normalization=False), slopes=False,
-                    out=(splats[:hi - lo], bbox[lo:hi], visible[lo:hi]))
-            if front is not None:
-                clock["project_ms"] += _ms(t)
-                t = time.perf_counter()
-                front_chunk(splats[:hi - lo], bbox[lo:hi], visible[lo:hi], camera, front)
-                clock["front_ms"] += _ms(t)
-                continue
-        else:
-            rgb, gain = shade_splats(source, camera, settings)
-            clock["shade_ms"] += _ms(t)
-            t = time.perf_counter()
-            project(source, rgb, camera, lens, settings, gain=gain,
-                    out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
-            del rgb, gain
+        rgb, gain = shade_splats(source, camera, settings)
+        clock["shade_ms"] += _ms(t)
+        t = time.perf_counter()
+        project(source, rgb, camera, lens, settings, gain=gain,
+                out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
+        clock["project_ms"] += _ms(t)
+        del source, rgb, gain
+
+
+def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
+                  rows, bbox, visible, front, clock: dict) -> None:
+    """``draw_cut_banded``'s first pass: the pixel box and visibility of every node of
+    ``cut`` into bbox and visible, gathered and projected ``len(rows)`` at a time into
+    ``rows`` (scratch), unshaded, without the Gaussian kernels' pixel sums and without the
+    colour slopes (none of which changes a box, a visibility or a front disk); and, if
+    ``front`` is a front map (``rasterize``), each chunk's opaque disks drawn into it
+    (``front_chunk``), in cut order as the one-buffer frame draws them. Adds to
+    clock["select_ms"], ["project_ms"] and ["front_ms"]."""
+    from ..lod import gather_cut
+
+    boxes = replace(settings, exact_normalization=False)
+    n, chunk = cut[0].size, rows.shape[0]
+    for lo in range(0, n, chunk):
+        hi = min(lo + chunk, n)
+        t = time.perf_counter()
+        source = gather_cut(tree, surfels, tuple(a[lo:hi] for a in cut))
+        clock["select_ms"] += _ms(t)
+        t = time.perf_counter()
+        out = (rows[:hi - lo], bbox[lo:hi], visible[lo:hi])
+        project(source, source.colors, camera, lens, boxes, slopes=False, out=out)
         clock["project_ms"] += _ms(t)
         del source
+        if front is not None:
+            t = time.perf_counter()
+            front_chunk(*out, camera, front)
+            clock["front_ms"] += _ms(t)
 
 
 def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
                     settings: RenderSettings, times: dict, budget: int):
     """``draw_cut`` for a cut of more than ``budget`` nodes (``frame.splat_rows_budget``),
     with about that many splat rows in memory at once (a pinhole cut of 10 M surfels is
-    5.2 M nodes: 650 MB of rows).
+    5.2 M nodes: 650 MB of rows); more only where one tile row alone touches more splats.
 
-    A first pass projects the whole cut for its splats' boxes only (``project_cut``,
-    bbox_only); the image's tile rows are then cut into bands that each touch at most
-    budget of them (and max_tile_pairs tile pairs); each band's splats are
-    gathered, shaded and projected again, in cut order, and rasterised (``rasterize``'s
-    ``rows``). The first pass also draws the front pass's disks, chunk by chunk
-    (``front_chunk``). A projection is the same arithmetic whichever rows it fills, and the
-    front map takes the least depth whatever the order, so the frame is ``draw_cut``'s bit
-    for bit; it costs a second projection of the cut (without the kernels' normalisation,
-    the shading and the colour slopes) and one more per band boundary a splat spans."""
+    A first pass gathers and projects the whole cut, a budget at a time, for its splats'
+    boxes and the front pass's disks (``project_boxes``); the image's tile rows are then
+    cut into bands that each touch at most budget splats (and max_tile_pairs tile pairs);
+    each band's splats are gathered, shaded and projected again, in cut order, into one
+    buffer and rasterised (``rasterize``'s ``rows``). A projection is the same arithmetic
+    whichever rows it fills, each tile receives its splats in cut order, and the front map
+    is drawn in cut order as the one-buffer frame's is, so the frame is ``draw_cut``'s bit
+    for bit. It costs a second gather and projection of the cut, one more per band
+    boundary a splat spans, and a raster pass per band (bench/RESULTS.md)."""
     from ..raster.abuffer import FRONT_FIELDS, TILE
     from ..splat.project import N_FIELDS
 
     n = cut[0].size
     bbox = np.empty((n, 4), np.int32)
     visible = np.empty(n, np.bool_)
-    chunk = min(CUT_CHUNK, budget)  # the first pass's chunks, in the bands' rows
-    rows = np.empty((min(budget, n), N_FIELDS), np.float32)
+    buffer = [np.empty((min(budget, CUT_CHUNK, n), N_FIELDS), np.float32)]
     clock = {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0, "front_ms": 0.0}
     merge = merge_parameters(camera, lens, settings)
     front = None
-    if front_pass(merge, settings):  # drawn by the first pass, chunk by chunk
+    if front_pass(merge, settings):
         front = np.full((camera.height * camera.width, FRONT_FIELDS), np.inf, np.float32)
-    project_cut(surfels, tree, cut, camera, lens, settings, (rows, bbox, visible), clock,
-                bbox_only=True, front=front, chunk=chunk)
+    project_boxes(surfels, tree, cut, camera, lens, settings, buffer[0], bbox, visible, front,
+                  clock)
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings, max_splats=budget)
     bin_ms = _ms(t)
 
     def band_rows(ty0: int, ty1: int):
-        # the band's splats, in cut order: visible, and their rows reach into the band
+        # the band's splats, in cut order: visible, and their boxes reach into the band
         pick = np.flatnonzero(visible & (bbox[:, 2] < ty1 * TILE) & (bbox[:, 3] >= ty0 * TILE))
         m = pick.size
-        out = (rows[:m] if m <= rows.shape[0] else np.empty((m, N_FIELDS), np.float32),
-               np.empty((m, 4), np.int32), np.empty(m, np.bool_))
+        if m > buffer[0].shape[0]:  # grown in place: one buffer of rows at a time
+            buffer[0] = None
+            buffer[0] = np.empty((m, N_FIELDS), np.float32)
+        out = (buffer[0][:m], np.empty((m, 4), np.int32), np.empty(m, np.bool_))
         project_cut(surfels, tree, tuple(a[pick] for a in cut), camera, lens, settings, out,
-                    clock, chunk=chunk)
+                    clock, chunk=min(CUT_CHUNK, budget))
         return out
 
     image, depth, weight, stats = rasterize(None, None, None, bands, camera, settings, merge,
@@ -413,6 +424,9 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
 
     def band(ty0, ty1):
         return (splats, bbox, visible) if rows is None else rows(ty0, ty1)
+
+    if rows is not None and front is None and front_pass(merge, settings):
+        raise ValueError("rasterize: bands projected afresh need their front map drawn first")
 
     if front is None and front_pass(merge, settings):
         front = np.full((h * w, FRONT_FIELDS), np.inf, np.float32)
