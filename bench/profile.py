@@ -6,7 +6,7 @@
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
-    python bench/profile.py --scenes big --max-splat-rows 1048576   # bands of cut rows
+    python bench/profile.py --scenes big --max-splat-rows 524288   # band by band (RESULTS)
 
 Each scene is rendered pinhole and at two apertures with the default settings (LOD on, the
 aperture's disc, soft reconstruction): one warm-up frame (the JIT, the LOD hierarchy), then

@@ -190,26 +190,26 @@ def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
     n = cut[0].size
     bbox = np.empty((n, 4), np.int32)
     visible = np.empty(n, np.bool_)
-    buffer = [np.empty((min(budget, CUT_CHUNK, n), N_FIELDS), np.float32)]
+    rows = np.empty((min(budget, CUT_CHUNK, n), N_FIELDS), np.float32)
     clock = {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0, "front_ms": 0.0}
     merge = merge_parameters(camera, lens, settings)
     front = None
     if front_pass(merge, settings):
         front = np.full((camera.height * camera.width, FRONT_FIELDS), np.inf, np.float32)
-    project_boxes(surfels, tree, cut, camera, lens, settings, buffer[0], bbox, visible, front,
-                  clock)
+    project_boxes(surfels, tree, cut, camera, lens, settings, rows, bbox, visible, front, clock)
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings, max_splats=budget)
     bin_ms = _ms(t)
 
     def band_rows(ty0: int, ty1: int):
+        nonlocal rows
         # the band's splats, in cut order: visible, and their boxes reach into the band
         pick = np.flatnonzero(visible & (bbox[:, 2] < ty1 * TILE) & (bbox[:, 3] >= ty0 * TILE))
         m = pick.size
-        if m > buffer[0].shape[0]:  # grown in place: one buffer of rows at a time
-            buffer[0] = None
-            buffer[0] = np.empty((m, N_FIELDS), np.float32)
-        out = (buffer[0][:m], np.empty((m, 4), np.int32), np.empty(m, np.bool_))
+        if m > rows.shape[0]:  # grown, not doubled: one buffer of rows at a time
+            rows = None
+            rows = np.empty((m, N_FIELDS), np.float32)
+        out = (rows[:m], np.empty((m, 4), np.int32), np.empty(m, np.bool_))
         project_cut(surfels, tree, tuple(a[pick] for a in cut), camera, lens, settings, out,
                     clock, chunk=min(CUT_CHUNK, budget))
         return out
@@ -331,7 +331,7 @@ def project(source, rgb: np.ndarray, camera: Camera, lens, settings: RenderSetti
     else they are new; gain: (S, 3) the shading's factor on the colour (``shade_splats``),
     applied to the nodes' colour gradients, or None for 1; out: (splats, bbox, visible)
     arrays of S rows to fill instead (``draw_cut``); slopes: False leaves the nodes'
-    colour slopes unset (a pass for the boxes alone, ``project_cut``)
+    colour slopes unset (a pass for the boxes alone, ``project_boxes``)
     """
     from ..splat.project import N_FIELDS, project_splats, slope_splats
     from ..splat.source import from_surfels
@@ -422,28 +422,20 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     bin_ms = raster_ms = front_ms = 0.0
     binned = {}
 
-    def band(ty0, ty1):
-        return (splats, bbox, visible) if rows is None else rows(ty0, ty1)
-
     if rows is not None and front is None and front_pass(merge, settings):
         raise ValueError("rasterize: bands projected afresh need their front map drawn first")
-
     if front is None and front_pass(merge, settings):
+        t = time.perf_counter()
         front = np.full((h * w, FRONT_FIELDS), np.inf, np.float32)
         for ty0, ty1 in bands:
-            sp, bb, vis = band(ty0, ty1)
-            t = time.perf_counter()
-            offsets, ids = bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
-            if len(bands) == 1 and rows is None:
+            offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
+            if len(bands) == 1:
                 binned[ty0] = offsets, ids  # one band: bin once for both passes
-            front_band(sp, bb, offsets, ids, n_tx, ty0, w, h, front)
-            front_ms += _ms(t)
-        if rows is None:
-            t = time.perf_counter()
-            apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
-            front_ms += _ms(t)
+            front_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, front)
+        apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
+        front_ms = _ms(t)
     for ty0, ty1 in bands:
-        sp, bb, vis = band(ty0, ty1)
+        sp, bb, vis = (splats, bbox, visible) if rows is None else rows(ty0, ty1)
         if rows is not None and front is not None:
             # each band's rows are new: the visibility of its splats, from the whole front
             t = time.perf_counter()
@@ -469,7 +461,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
 
 def front_chunk(splats, bbox, visible, camera: Camera, front) -> None:
     """The front pass's opaque disks of some splats into ``front`` (``rasterize``), binned
-    over the whole image: the map is the same whichever splats come first."""
+    over the whole image; called on the chunks of a cut in its order, it draws the map
+    ``rasterize`` draws from the whole cut."""
     from ..raster.abuffer import TILE, bin_splats, front_band
 
     n_tx = -(-camera.width // TILE)
