@@ -167,16 +167,20 @@ def test_show_lod_frame_matches_cpu(scene):
 
 
 @needs_cuda
-def test_lod_cut_and_projection_match_cpu(scene):
-    """The cut (same nodes, same order, same gathered arrays) and the projected splats."""
+@pytest.mark.parametrize("small", [1, 3], ids=["full-tree", "compact-tree"])
+def test_lod_cut_and_projection_match_cpu(scene, small):
+    """The cut (same nodes, same order, same gathered arrays) and the projected splats; the
+    GPU reads every inner node's row, which a compact tree (lod/hierarchy.py) computes for
+    it where it stores none."""
     from dofsplat.backends import cuda as bc
     from dofsplat.backends.cpu import shade_splats
-    from dofsplat.render import lod_tree, project, select
+    from dofsplat.lod import build_hierarchy
+    from dofsplat.render import project, select
 
     surfels, camera = scene
     settings = ds.RenderSettings(lod_blur_fraction=1.0)  # the paper's stop: inner nodes here
     lens = _lens(2.0)
-    tree = lod_tree(surfels)
+    tree = build_hierarchy(surfels, small=small)
     cpu_src = select(surfels, camera, lens, settings, tree)
     gpu_src = bc.select_cuda(surfels, bc.device_scene(surfels, tree), tree, camera, lens, settings)
     for name in ("positions", "normals", "colors", "opacity", "ru", "rv", "area", "lod_cov",

@@ -8,7 +8,7 @@ import pytest
 
 import dofsplat as ds
 from dofsplat.demo import textured_plane
-from dofsplat.lod import Hierarchy, build_hierarchy, select_splats
+from dofsplat.lod import Hierarchy, build_hierarchy, model_arrays, select_splats
 from dofsplat.render import project, shade_surfels
 from dofsplat.slow import project_reference
 
@@ -37,8 +37,10 @@ def bumpy_surfels(seed=0, n=3000):
 
 @pytest.fixture(scope="module")
 def bumpy():
+    """The sheet and its compact tree (the nodes of 2 or 3 surfels not stored: the layout
+    of models over COMPACT_FROM surfels, whose frames equal the full tree's)."""
     s = bumpy_surfels()
-    return s, build_hierarchy(s)
+    return s, build_hierarchy(s, small=3)
 
 
 def leaves_of(tree, i):
@@ -46,9 +48,14 @@ def leaves_of(tree, i):
 
 
 def by_node(tree, s):
-    """The tree's attributes with a row per node (2N - 1): an inner node's stored row
-    (``Hierarchy.row``), a leaf's from its surfel, for which the tree stores nothing."""
+    """The tree's attributes with a row per node (2N - 1): an inner node's row
+    (``Hierarchy.expanded``: stored, or computed for a small node), a leaf's from its
+    surfel, for which the tree stores nothing; and each node's height, ``level``."""
+    from dofsplat.lod.hierarchy import node_height
+
     inner = tree.count > 1
+    rows = tree.expanded(s)
+    rows["level"] = np.array([node_height(m) for m in tree.count[inner]], np.int8)
     k = tree.order[tree.start[~inner]]
     rv = s.radius_v if s.is_elliptical else s.radius
     reach = np.maximum(s.radius, rv)[k]  # _node_spheres: the disk's radius about its centre
@@ -60,11 +67,14 @@ def by_node(tree, s):
             "sigma_r2": 0.25 * a_geo, "lod_cov": 0.0, "color_grad": 0.0, "level": 0}
     full = {}
     for name, value in leaf.items():
-        a = getattr(tree, name)
+        a = rows[name]
         full[name] = np.zeros((len(tree),) + a.shape[1:], a.dtype)
         full[name][inner] = a
         full[name][~inner] = value
-    return replace(tree, **full)
+    level = full.pop("level")
+    out = replace(tree, **full)
+    out.level = level
+    return out
 
 
 # -- the hierarchy -------------------------------------------------------------------------
@@ -152,11 +162,16 @@ def test_prefiltered_attributes_are_area_weighted_means(bumpy):
         want = (c * w[:, None]).T @ (d @ np.stack([u, v], axis=1))  # (3 channels, 2 axes)
         np.testing.assert_allclose(tree.color_grad[i].reshape(3, 2), want, rtol=1e-4,
                                    atol=1e-6 * np.abs(want).max())
-    # the tree stores its n - 1 inner nodes only, in preorder: node i is row i - start[i]
-    inner = np.flatnonzero(stored.count > 1)
-    assert stored.lod_cov.shape[0] == len(s) - 1 == inner.size
-    np.testing.assert_array_equal(stored.row(inner), np.arange(inner.size))
-    assert np.all(stored.level > 0)
+    # the compact tree stores its nodes of more than 3 surfels only, in preorder
+    kept = np.flatnonzero(stored.count > 3)
+    assert stored.lod_cov.shape[0] == kept.size < 0.5 * len(s)
+    np.testing.assert_array_equal(stored.row(kept), np.arange(kept.size))
+    assert np.all(stored.row(np.flatnonzero(stored.count <= 3)) == -1)
+    # the full tree stores its n - 1 inner nodes, node i in row i - start[i]
+    full = build_hierarchy(s, small=1)
+    inner = np.flatnonzero(full.count > 1)
+    assert full.lod_cov.shape[0] == len(s) - 1 == inner.size
+    np.testing.assert_array_equal(full.row(inner), inner - full.start[inner])
 
 
 def test_grid_node_filter_is_the_leaf_rule_at_the_node_extent():
@@ -186,8 +201,9 @@ def test_save_load_and_invalidation(tmp_path, bumpy):
     path = tree.save(tmp_path / "m.lod.npz")
     back = Hierarchy.load(path, s)
     assert back is not None and back.fingerprint == tree.fingerprint
-    for name in ("order", "count", "center", "bound", "lod_cov", "color", "color_grad", "level"):
+    for name in ("order", "count", "center", "bound", "lod_cov", "color", "color_grad", "rows"):
         np.testing.assert_array_equal(getattr(back, name), getattr(tree, name))
+    assert back.small == tree.small == 3
     changed = replace(s, colors=s.colors.copy())
     changed.colors[5, 0] = 0.123
     assert Hierarchy.load(path, changed) is None  # a changed model invalidates the file
@@ -195,6 +211,60 @@ def test_save_load_and_invalidation(tmp_path, bumpy):
     with pytest.raises(ds.DofsplatError, match="not a dofsplat LOD file"):
         Hierarchy.load(tmp_path / "bad.npz", s)
     assert Hierarchy.load(tmp_path / "missing.npz", s) is None
+
+
+def _sheet(kind):
+    """The wavy sheet: with weights, without, or of elliptical surfels."""
+    s = bumpy_surfels(seed=3, n=2501)
+    if kind == "unweighted":
+        return replace(s, weight=None)
+    if kind == "elliptical":
+        rng = np.random.default_rng(4)
+        t = np.cross(s.normals, rng.normal(size=(len(s), 3)))
+        return replace(s, tangent=t / np.linalg.norm(t, axis=1, keepdims=True),
+                       radius_v=s.radius * rng.uniform(0.3, 1.0, len(s)).astype(np.float32))
+    return s
+
+
+@pytest.mark.parametrize("kind", ["weighted", "unweighted", "elliptical"])
+def test_a_compact_tree_computes_the_nodes_it_leaves_out_bit_for_bit(kind):
+    """The nodes of 2 or 3 surfels that a compact tree does not store, computed from their
+    surfels (hierarchy.small_node), equal the full tree's stored rows bit for bit, and the
+    stored ones are the same rows."""
+    from dofsplat.lod.hierarchy import ATTRIBUTES
+
+    s = _sheet(kind)
+    full, compact = build_hierarchy(s, small=1), build_hierarchy(s, small=3)
+    assert (full.small, compact.small) == (1, 3)
+    assert compact.nbytes() < 0.6 * full.nbytes()
+    kept = compact.count > 3
+    for name, rows in compact.expanded(s).items():
+        assert rows.tobytes() == getattr(full, name).tobytes(), name
+        assert getattr(compact, name).tobytes() == getattr(full, name)[
+            full.rows[kept]].tobytes(), name
+    assert set(ATTRIBUTES) == set(compact.expanded(s))
+
+
+@pytest.mark.parametrize("small", [1, 3])
+def test_stored_nodes_counts_a_subtrees_stored_rows(small):
+    from dofsplat.lod.hierarchy import stored_nodes, tree_shape
+
+    for n in [*range(1, 80), 1000, 1023, 1025, 3 << 10, 100_003]:
+        assert stored_nodes(n, small) == int(np.sum(tree_shape(n)[1] > small)), n
+
+
+@pytest.mark.parametrize("aperture", [0.0, 0.1, 0.4])
+def test_frames_of_a_compact_tree_are_the_full_trees(plane_view, aperture):
+    """Same cut, same splats, same frame: the compact tree changes memory, not images."""
+    s, cam = plane_view
+    lens = ds.ThinLens(focus_distance=3.0, aperture=aperture) if aperture else None
+    full, compact = build_hierarchy(s, small=1), build_hierarchy(s, small=3)
+    for st in (ds.RenderSettings(), ds.RenderSettings(show_lod=True),
+               ds.RenderSettings(lod_blur_fraction=1.0, lod_pixel_threshold=3.0)):
+        a = ds.render(s, cam, lens, st, full)
+        b = ds.render(s, cam, lens, st, compact)
+        assert a.stats["splats_selected"] == b.stats["splats_selected"]
+        np.testing.assert_array_equal(a.image, b.image)
 
 
 # -- the per-frame cut ---------------------------------------------------------------------
@@ -225,17 +295,20 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(stored.n_surfels, stored.center, stored.bound, stored.extent,
-                 stored.position, stored.normal, stored.cone, stored.sigma_r2, stored.lod_cov,
-                 view, ax, bx, ay, by, 0.01, 160, 120,
+    select_nodes(stored.n_surfels, (stored.center, stored.bound, stored.extent,
+                                    stored.position, stored.normal, stored.cone,
+                                    stored.sigma_r2, stored.lod_cov),
+                 stored.small, model_arrays(stored, s), view, ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, True, flags)
     chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
-    # cut_nodes reads the same nodes, with the first leaves and counts of the tree's shape
+    # cut_nodes reads the same nodes, with the first leaves, counts and rows of the tree
     from dofsplat.lod.select import cut_nodes
-    nodes, first, counts = cut_nodes(flags, stored.n_surfels)
+    nodes, first, counts, rows = cut_nodes(flags, stored.n_surfels, stored.small)
     np.testing.assert_array_equal(nodes, chosen)
     np.testing.assert_array_equal(first, stored.start[chosen])
     np.testing.assert_array_equal(counts, stored.count[chosen])
+    np.testing.assert_array_equal(rows, stored.rows[chosen])
+    assert np.sum(rows == -1) > np.sum(counts == 1)  # small nodes in the cut too
     inner = chosen[tree.count[chosen] > 1]
     assert inner.size > 20  # the blur lets the cut stop above the leaves
     covered = np.zeros(len(s), int)
@@ -342,8 +415,9 @@ def _cut(tree, s, cam, lens):
     ax, bx, ay, by = cam.screen_coefficients()
     flags = np.empty(len(tree), np.uint8)
     view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
-    select_nodes(tree.n_surfels, tree.center, tree.bound, tree.extent, tree.position,
-                 tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by,
+    select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
+                                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov),
+                 tree.small, model_arrays(tree, s), view, ax, bx, ay, by,
                  cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
                  2.5, 1.0, 1.0, True, flags)
     return np.flatnonzero(flags == 1)

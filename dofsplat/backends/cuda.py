@@ -217,17 +217,20 @@ def _gather(nodes, order, start, count, position, normal, color, opacity, area, 
     """Row t: node nodes[t] as a splat (lod/select.py's gather_splat, one thread per row),
     and its colour gradient (zero at the leaves; lod/select.py's gather_gradient).
     start, count: every node's (the tree's shape); row_start, row_count: the rows' own,
-    filled here (gather_splat reads them by row, as the CPU's cut_nodes gives them)."""
+    filled here (gather_splat reads them by row, as the CPU's cut_nodes gives them). The
+    attribute arrays have a row per inner node (``Hierarchy.expanded``): node i's is
+    i - start[i]."""
     t = cuda.grid(1)
     if t < nodes.shape[0]:
         i = nodes[t]
         row_start[t] = start[i]
         row_count[t] = count[i]
-        _gather_splat(t, nodes, order, row_start, row_count, position, normal, color, opacity,
+        r = i - start[i]
+        _gather_splat(t, r, order, row_start, row_count, position, normal, color, opacity,
                       area, sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                       s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
                       out_area, out_cov, out_level)
-        _gather_gradient(t, nodes, row_start, row_count, color_grad, out_grad)
+        _gather_gradient(t, r, row_count, color_grad, out_grad)
 
 
 @cuda.jit
@@ -544,7 +547,11 @@ def device_scene(surfels, tree=None) -> DeviceScene:
         scene = DeviceScene(key=key, source=dev, raw=raw, tree=None, tree_id=None)
         surfels._cuda_scene = scene
     if tree is not None and scene.tree_id != id(tree):
-        scene.tree = {name: _upload(getattr(tree, name)) for name in TREE_ARRAYS}
+        # a row per inner node: the walk below reads row i - start[i] of every node it
+        # visits (the CPU computes the nodes the tree does not store as it reaches them)
+        rows = tree.expanded(surfels)
+        rows.update(order=tree.order, start=tree.start, count=tree.count)
+        scene.tree = {name: _upload(rows[name]) for name in TREE_ARRAYS}
         scene.tree_id = id(tree)
     return scene
 

@@ -39,8 +39,9 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                cutoff: float, pixel_threshold: float, cull_backfaces: bool,
                blur_fraction: float = 1.0):
-    """This frame's cut: (nodes (S,) int64 in preorder, their first leaves (S,) int32, their
-    counts (S,) int32) (``select_nodes``, ``cut_nodes``)."""
+    """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
+    rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
+    ``cut_nodes``)."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):
@@ -49,22 +50,32 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
-    select_nodes(tree.n_surfels, tree.center, tree.bound, tree.extent, tree.position,
-                 tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov, view, ax, bx, ay, by, near,
+    select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
+                                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov),
+                 tree.small, model_arrays(tree, surfels), view, ax, bx, ay, by, near,
                  camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
-    return cut_nodes(flags, tree.n_surfels)
+    return cut_nodes(flags, tree.n_surfels, tree.small)
+
+
+def model_arrays(tree: Hierarchy, surfels):
+    """What ``small_node`` reads: (the tree's order, the surfels' positions, normals, r_u,
+    r_v, weights ((0,) without), colours, opacities)."""
+    from .hierarchy import _radii_weight
+
+    return (tree.order, surfels.positions, surfels.normals, *_radii_weight(surfels),
+            surfels.colors, surfels.opacity)
 
 
 def gather_cut(tree: Hierarchy, surfels, cut):
-    """The nodes of ``cut`` ((nodes, start, count) as ``select_cut`` gives them, or rows of
-    it) as a ``SplatSource``: a leaf is its surfel, an inner node its prefiltered attributes
-    (``gather_splats``)."""
+    """The nodes of ``cut`` ((nodes, start, count, row) as ``select_cut`` gives them, or rows
+    of it) as a ``SplatSource``: a leaf is its surfel, an inner node its prefiltered
+    attributes (``gather_splats``)."""
     import numpy as np
 
     from ..splat.source import SplatSource
 
-    nodes, start, count = cut
+    nodes, start, count, row = cut
     n = nodes.size
     ell = surfels.is_elliptical
     empty = np.zeros(0, np.float32)
@@ -76,15 +87,15 @@ def gather_cut(tree: Hierarchy, surfels, cut):
         lod_cov=np.empty((n, 6), np.float32), color_grad=np.empty((n, 6), np.float32),
         level=np.empty(n, np.int8),
         material=surfels.material)
-    gather_splats(nodes, tree.order, start, count, tree.position, tree.normal,
+    gather_splats(row, tree.order, start, count, tree.position, tree.normal,
                   tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov,
                   surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
                   surfels.tangent if ell else np.zeros((0, 3), np.float32), surfels.radius,
                   surfels.radius_v if ell else empty,
                   surfels.weight if surfels.weight is not None else empty, out.positions,
                   out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv, out.area,
-                  out.lod_cov, out.level)
-    # the colour gradients (zero for a surfel) in a pass of their own: two more arrays in
-    # gather_splat stop numba inlining it, which made the cut 2.5 x slower
-    gather_gradients(nodes, start, count, tree.color_grad, out.color_grad)
+                  out.lod_cov, out.level, out.color_grad)
+    # the stored nodes' colour gradients (zero for a surfel) in a pass of their own: two
+    # more arrays in gather_splat stop numba inlining it, which made the cut 2.5 x slower
+    gather_gradients(row, count, tree.color_grad, out.color_grad)
     return out

@@ -12,11 +12,15 @@ preorder, so the tree needs no child pointers:
     right child of node i = i + 2 * (count[i] // 2)
 
 Node i covers the surfels ``order[start[i] : start[i] + count[i]]``; a leaf (count 1) is one
-surfel, and the tree stores nothing else for it: its attributes are its surfel's. The
-attributes below are stored for the N - 1 inner nodes only, in preorder, so inner node i is
-row ``i - start[i]`` (the leaves before i in preorder are exactly the surfels before its
-first, start[i] of them; ``Hierarchy.row``). Each inner node carries what the per-frame
-selection and the splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of detail"):
+surfel, and the tree stores nothing else for it: its attributes are its surfel's. A tree
+over a large model (``COMPACT_FROM`` surfels or more) does not store its inner nodes of
+2 or 3 surfels either (``Hierarchy.small`` = 3, else 1): they are half to two thirds of
+the inner nodes, and the selection and the gather compute one from its surfels when they
+reach it (``small_node``, by the build's own functions, so bit for bit what the build
+would have stored), which costs the selection about twice its time. The attributes below
+are stored for the other nodes, in preorder (``tree_rows``; a walk down the tree counts
+them with ``stored_nodes``). Each node carries what the per-frame selection and the
+splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of detail"):
 
 * a bounding sphere (``center``, ``bound``) that contains its children's spheres, for
   frustum and normal-cone culling; and ``extent``, the radius about the same centre of the
@@ -39,8 +43,10 @@ selection and the splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of
   colours with their positions along the two axes of its tangent frame (``tangent_frame``
   of its normal): where the box-filtered mean colour loses a texture's edges, the
   projection turns this into the colour's slope across the splat (docs/maths.md, "A node's
-  colour gradient"); zero at the leaves;
-* ``level``: the node's height (0 at the leaves), for ``--show-lod``.
+  colour gradient"); zero at the leaves.
+
+A node's height (for ``--show-lod``) is not stored either: the median split makes it
+ceil(log2 count).
 """
 
 from __future__ import annotations
@@ -48,7 +54,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numba
@@ -61,7 +67,12 @@ from ..surfels import Surfels
 # a node whose unit normals spread by more than this in one component (1.4 ~ sqrt 2: normals
 # about 90 degrees apart) is split by normal, not by position (docs/maths.md)
 NORMAL_SPREAD = 1.4
-FORMAT_VERSION = 6  # bump when the build or the stored arrays change: old files are rebuilt
+# from this many surfels on, inner nodes of at most SMALL_NODE surfels are not stored (they
+# are computed when a walk reaches them): the tree's memory, 125 bytes per surfel, falls by
+# half or more, and a frame's selection takes about twice as long (bench/RESULTS.md)
+COMPACT_FROM = 1 << 22
+SMALL_NODE = 3
+FORMAT_VERSION = 7  # bump when the build or the stored arrays change: old files are rebuilt
 
 
 @dataclass
@@ -70,7 +81,9 @@ class Hierarchy:
     of them inner nodes).
 
     order:    (N,) int32, surfel indices in leaf order
-    The rest have a row per inner node, node i's row being ``row(i)`` = i - start[i]:
+    small:    inner nodes of at most this many surfels are not stored (1 or SMALL_NODE)
+    The rest have a row per stored node (more than ``small`` surfels), in preorder: node
+    i's row is ``row(i)`` (``tree_rows``):
     center:   (K, 3) float32, bounding-sphere centre, world units
     bound:    (K,) float32, bounding-sphere radius (contains the children's spheres)
     extent:   (K,) float32, radius about ``center`` that just contains the node's disks
@@ -86,7 +99,6 @@ class Hierarchy:
     color_grad: (K, 6) float32, Cov(colour, position . t) per channel and tangent axis
               (r.u, r.v, g.u, g.v, b.u, b.v; colour x world units), t = (u, v) the node's
               ``tangent_frame``
-    level:    (K,) int8, height above the leaves
     fingerprint: hash of the surfel arrays the tree was built from
 
     ``start`` and ``count`` ((M,) int32: each node's first leaf-order position and number of
@@ -108,8 +120,8 @@ class Hierarchy:
     sigma_r2: np.ndarray
     lod_cov: np.ndarray
     color_grad: np.ndarray
-    level: np.ndarray
     fingerprint: str
+    small: int = 1
 
     def __len__(self) -> int:
         return 2 * self.n_surfels - 1
@@ -134,12 +146,38 @@ class Hierarchy:
 
     @property
     def depth(self) -> int:
-        """Number of levels (the root's height + 1)."""
-        return int(self.level[0]) + 1 if self.level.size else 1
+        """Number of levels (the root's height + 1: the median split makes it
+        ceil(log2 N) + 1)."""
+        return int(node_height(self.n_surfels)) + 1
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(2N - 1,) int32: each node's row in the attribute arrays, -1 where the tree
+        stores none (``tree_rows``)."""
+        rows = self.__dict__.get("_rows")
+        if rows is None:
+            rows = self.__dict__["_rows"] = tree_rows(self.n_surfels, self.small)
+        return rows
 
     def row(self, node):
-        """The row of inner node(s) ``node`` in the attribute arrays: node - start[node]."""
-        return node - self.start[node]
+        """The row of node(s) ``node`` in the attribute arrays (-1: not stored)."""
+        return self.rows[node]
+
+    def expanded(self, surfels: Surfels) -> dict:
+        """The attribute arrays with a row for every inner node (N - 1 rows, node i's row
+        i - start[i]): the stored rows, and the small nodes computed (``small_node``), by
+        name (center, bound, ...). For the CUDA backend, whose walk reads every inner
+        node's row, and for the tests."""
+        if self.n_surfels != len(surfels):
+            raise ValueError("the hierarchy was built for a different model")
+        nodes = np.flatnonzero(self.count > 1)
+        full = {name: np.empty((nodes.size,) + getattr(self, name).shape[1:], np.float32)
+                for name in ATTRIBUTES}
+        ru, rv, weight = _radii_weight(surfels)
+        _expand(nodes, self.start, self.count, self.rows, self.order, surfels.positions,
+                surfels.normals, ru, rv, weight, surfels.colors, surfels.opacity,
+                *(getattr(self, name) for name in ATTRIBUTES), *full.values())
+        return full
 
     def children(self, node: int) -> tuple[int, int] | None:
         """(left, right) node indices, or None for a leaf."""
@@ -149,7 +187,7 @@ class Hierarchy:
         return node + 1, node + 2 * (m // 2)
 
     def nbytes(self) -> int:
-        return sum(getattr(self, f.name).nbytes for f in fields(self) if f.name != "fingerprint")
+        return sum(getattr(self, name).nbytes for name in ("order",) + ATTRIBUTES)
 
     # -- persistence -----------------------------------------------------------------
 
@@ -158,12 +196,12 @@ class Hierarchy:
         from ..io.images import atomic_write
 
         path = Path(path)
-        arrays = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "fingerprint"}
+        arrays = {name: getattr(self, name) for name in ("order",) + ATTRIBUTES}
 
         def write(tmp):
             with open(tmp, "wb") as fh:
                 np.savez(fh, fingerprint=np.array(self.fingerprint),
-                         version=np.array(FORMAT_VERSION), **arrays)
+                         version=np.array(FORMAT_VERSION), small=np.array(self.small), **arrays)
 
         atomic_write(path, write)
         return path
@@ -181,18 +219,31 @@ class Hierarchy:
             with np.load(path, allow_pickle=False) as z:
                 if int(z["version"]) != FORMAT_VERSION:
                     return None
-                data = {f.name: z[f.name] for f in fields(cls) if f.name != "fingerprint"}
+                data = {name: z[name] for name in ("order",) + ATTRIBUTES}
                 fp = str(z["fingerprint"])
+                small = int(z["small"])
         except FileNotFoundError:
             return None
         except (OSError, ValueError, KeyError) as exc:
             raise DofsplatError(f"{path}: not a dofsplat LOD file ({exc})") from None
         if surfels is not None and fp != fingerprint(surfels):
             return None
-        tree = cls(fingerprint=fp, **data)
+        tree = cls(fingerprint=fp, small=small, **data)
         if surfels is not None and tree.n_surfels != len(surfels):
             return None
         return tree
+
+
+ATTRIBUTES = ("center", "bound", "extent", "position", "normal", "cone", "color", "opacity",
+              "area", "sigma_r2", "lod_cov", "color_grad")  # a row per stored node each
+
+
+def _radii_weight(surfels: Surfels):
+    """The surfels' r_u, r_v and normalisation weights as the build reads them (weights
+    (0,) for a model without: 1 each)."""
+    rv = surfels.radius_v if surfels.is_elliptical else surfels.radius
+    weight = surfels.weight if surfels.weight is not None else np.zeros(0, np.float32)
+    return surfels.radius, rv, weight
 
 
 def fingerprint(surfels: Surfels) -> str:
@@ -205,16 +256,23 @@ def fingerprint(surfels: Surfels) -> str:
     return h.hexdigest()
 
 
-def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
-    """Build the LOD tree over ``surfels`` (O(N log N); a few seconds for a million surfels)."""
+def build_hierarchy(surfels: Surfels, progress: bool = False,
+                    small: int | None = None) -> Hierarchy:
+    """Build the LOD tree over ``surfels`` (O(N log N); a few seconds for a million surfels).
+
+    small: inner nodes of at most this many surfels are not stored, 1 or SMALL_NODE
+    (default: SMALL_NODE from COMPACT_FROM surfels on, else 1); the frames are the same.
+    """
     n = len(surfels)
     if n >= 1 << 30:
         raise DofsplatError(f"{n} surfels is more than the LOD tree's int32 indices allow")
+    if small is None:
+        small = SMALL_NODE if n >= COMPACT_FROM else 1
+    if small not in (1, SMALL_NODE):
+        raise ValueError(f"small must be 1 or {SMALL_NODE}, got {small!r}")
     t0 = time.perf_counter()
     positions = surfels.positions
-    ru = surfels.radius
-    rv = surfels.radius_v if surfels.is_elliptical else surfels.radius
-    weight = surfels.weight if surfels.weight is not None else np.ones(n, np.float32)
+    ru, rv, weight = _radii_weight(surfels)
 
     # top down: median splits, level by level (each level's nodes in parallel)
     keys = np.ascontiguousarray(np.hstack([positions, surfels.normals]), np.float32)
@@ -256,25 +314,17 @@ def build_hierarchy(surfels: Surfels, progress: bool = False) -> Hierarchy:
     sigma_r2 = np.empty(m_nodes, np.float32)
     lod_cov = np.empty((m_nodes, 6), np.float32)
     color_grad = np.empty((m_nodes, 6), np.float32)
-    level = np.empty(m_nodes, np.int8)
     _node_spheres(order, start, count, positions, ru, rv, center, extent)
-    bound[:] = extent
     _aggregate(order, start, count, positions, surfels.normals, ru, rv, weight,
-               surfels.colors, surfels.opacity, center, bound, position, normal, cone,
-               color, opacity, area, sigma_r2, lod_cov, color_grad, level)
-    # keep the inner nodes' rows only (a leaf is its surfel): in preorder, so node i's row
-    # is i - start[i]
-    inner = count > 1
-    center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2, lod_cov, \
-        color_grad, level = (a[inner] for a in (center, bound, extent, position, normal, cone,
-                                                color, opacity, area, sigma_r2, lod_cov,
-                                                color_grad, level))
-    tree = Hierarchy(order=order, center=center, bound=bound,
-                     extent=extent,
-                     position=position, normal=normal, cone=cone, color=color,
-                     opacity=opacity, area=area, sigma_r2=sigma_r2, lod_cov=lod_cov,
-                     color_grad=color_grad, level=level,
-                     fingerprint=fingerprint(surfels))
+               surfels.colors, surfels.opacity, center, bound, extent, position, normal, cone,
+               color, opacity, area, sigma_r2, lod_cov, color_grad)
+    # keep the rows of the nodes of more than `small` surfels (a leaf is its surfel, a
+    # small node is computed from its surfels when needed), in preorder (tree_rows)
+    keep = count > small
+    tree = Hierarchy(order=order, fingerprint=fingerprint(surfels), small=small,
+                     **{name: a[keep] for name, a in zip(
+                         ATTRIBUTES, (center, bound, extent, position, normal, cone, color,
+                                      opacity, area, sigma_r2, lod_cov, color_grad))})
     tree.build_seconds = time.perf_counter() - t0  # informational, not stored
     return tree
 
@@ -408,32 +458,228 @@ def _select_nth(order, lo, hi, nth, positions, axis):
             return
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sphere(order, s, e, positions, ru, rv):
+    """The sphere of the surfels order[s:e]: centred on their bounding box, just containing
+    their disks; (cx, cy, cz, radius), float64."""
+    lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(positions, order, s, e)
+    cx = 0.5 * (np.float64(lo0) + hi0)
+    cy = 0.5 * (np.float64(lo1) + hi1)
+    cz = 0.5 * (np.float64(lo2) + hi2)
+    rad = 0.0
+    for j in range(s, e):
+        k = order[j]
+        dx = positions[k, 0] - cx
+        dy = positions[k, 1] - cy
+        dz = positions[k, 2] - cz
+        rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + max(ru[k], rv[k]))
+    return cx, cy, cz, rad
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _node_spheres(order, start, count, positions, ru, rv, center, bound):
-    """Each node's sphere: centred on its surfels' bounding box, just containing their disks."""
+def _node_spheres(order, start, count, positions, ru, rv, center, extent):
+    """Each node's sphere (``_sphere``): its centre and its ``extent``."""
     for i in numba.prange(count.shape[0]):
-        s = start[i]
-        e = s + count[i]
-        lo0, lo1, lo2, hi0, hi1, hi2 = _bounds(positions, order, s, e)
-        cx = 0.5 * (np.float64(lo0) + hi0)
-        cy = 0.5 * (np.float64(lo1) + hi1)
-        cz = 0.5 * (np.float64(lo2) + hi2)
-        rad = 0.0
-        for j in range(s, e):
-            k = order[j]
-            dx = positions[k, 0] - cx
-            dy = positions[k, 1] - cy
-            dz = positions[k, 2] - cz
-            rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + max(ru[k], rv[k]))
+        cx, cy, cz, rad = _sphere(order, start[i], start[i] + count[i], positions, ru, rv)
         center[i, 0], center[i, 1], center[i, 2] = cx, cy, cz
-        bound[i] = rad
+        extent[i] = rad
+
+
+# -- one node's values ------------------------------------------------------------------------
+# A node as one tuple of float64 (no arrays: numba passes a tuple of scalars for free, where
+# arrays passed between functions cost reference counting): its attributes as the tree
+# stores them (rounded to float32), then the build's float64 moments. Offsets:
+V_CENTER, V_BOUND, V_EXTENT, V_POSITION, V_NORMAL, V_CONE = 0, 3, 4, 5, 8, 11
+V_COLOR, V_OPACITY, V_AREA, V_SIGMA_R2, V_LOD_COV, V_COLOR_GRAD = 12, 15, 16, 17, 18, 24
+V_GEO, V_MEAN, V_COV, V_CMEAN, V_CCOV = 30, 31, 34, 40, 43  # geometric area, moments
+N_VALUES = 52
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _f32(x):
+    """x as a float32 array stores it."""
+    return np.float64(np.float32(x))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _leaf_values(px, py, pz, nx, ny, nz, red, green, blue, ru, rv, weight, alpha):
+    """A leaf's values from its surfel's (float32 values, weight 1 for a model without)."""
+    a_geo = ru * rv
+    reach = max(ru, rv)  # its sphere: centred on it, its disk's radius
+    z = 0.0
+    return (px, py, pz, reach, reach, px, py, pz, nx, ny, nz, z, red, green, blue, alpha,
+            _f32(a_geo * weight), _f32(0.25 * a_geo), z, z, z, z, z, z, z, z, z, z, z, z,
+            a_geo, px, py, pz, z, z, z, z, z, z, red, green, blue, z, z, z, z, z, z, z, z, z)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _surfel_leaf(k, positions, normals, ru, rv, weight, colors, alpha):
+    """``_leaf_values`` of surfel k (weight: (0,) for a model without)."""
+    w = 1.0
+    if weight.shape[0] > 0:
+        w = np.float64(weight[k])
+    return _leaf_values(np.float64(positions[k, 0]), np.float64(positions[k, 1]),
+                        np.float64(positions[k, 2]), np.float64(normals[k, 0]),
+                        np.float64(normals[k, 1]), np.float64(normals[k, 2]),
+                        np.float64(colors[k, 0]), np.float64(colors[k, 1]),
+                        np.float64(colors[k, 2]), np.float64(ru[k]), np.float64(rv[k]), w,
+                        np.float64(alpha[k]))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _combine(L, R, cx, cy, cz, extent, full):
+    """A node's values from its children's, L and R, and its sphere (``_sphere``: centre
+    and extent, as stored). full=False leaves out (as zeros) what the selection does not
+    read: the colour, opacity, colour gradient and normal cone."""
+    al, ar = L[V_AREA], R[V_AREA]
+    a = al + ar
+    # area-weighted means; equal weights if both children carry no area
+    if a > 0.0:
+        fl, fr = al / a, ar / a
+    else:
+        fl = fr = 0.5
+    gl, gr = L[V_GEO], R[V_GEO]
+    g = gl + gr
+    sigma_r2 = (gl * L[V_SIGMA_R2] + gr * R[V_SIGMA_R2]) / g
+    # parallel-axis combination of the children's moments
+    m0 = fl * L[V_MEAN] + fr * R[V_MEAN]
+    m1 = fl * L[V_MEAN + 1] + fr * R[V_MEAN + 1]
+    m2 = fl * L[V_MEAN + 2] + fr * R[V_MEAN + 2]
+    d0l, d1l, d2l = L[V_MEAN] - m0, L[V_MEAN + 1] - m1, L[V_MEAN + 2] - m2
+    d0r, d1r, d2r = R[V_MEAN] - m0, R[V_MEAN + 1] - m1, R[V_MEAN + 2] - m2
+    c0 = fl * (L[V_COV] + d0l * d0l) + fr * (R[V_COV] + d0r * d0r)
+    c1 = fl * (L[V_COV + 1] + d0l * d1l) + fr * (R[V_COV + 1] + d0r * d1r)
+    c2 = fl * (L[V_COV + 2] + d0l * d2l) + fr * (R[V_COV + 2] + d0r * d2r)
+    c3 = fl * (L[V_COV + 3] + d1l * d1l) + fr * (R[V_COV + 3] + d1r * d1r)
+    c4 = fl * (L[V_COV + 4] + d1l * d2l) + fr * (R[V_COV + 4] + d1r * d2r)
+    c5 = fl * (L[V_COV + 5] + d2l * d2l) + fr * (R[V_COV + 5] + d2r * d2r)
+
+    opacity = red = green = blue = 0.0
+    e0 = e1 = e2 = 0.0  # the mean colour, float64
+    q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = q8 = 0.0  # colour x position covariance
+    if full:
+        opacity = _f32(fl * L[V_OPACITY] + fr * R[V_OPACITY])
+        red = _f32(fl * L[V_COLOR] + fr * R[V_COLOR])
+        green = _f32(fl * L[V_COLOR + 1] + fr * R[V_COLOR + 1])
+        blue = _f32(fl * L[V_COLOR + 2] + fr * R[V_COLOR + 2])
+        e0 = fl * L[V_CMEAN] + fr * R[V_CMEAN]
+        e1 = fl * L[V_CMEAN + 1] + fr * R[V_CMEAN + 1]
+        e2 = fl * L[V_CMEAN + 2] + fr * R[V_CMEAN + 2]
+        el, er = L[V_CMEAN] - e0, R[V_CMEAN] - e0
+        q0 = fl * (L[V_CCOV] + el * d0l) + fr * (R[V_CCOV] + er * d0r)
+        q1 = fl * (L[V_CCOV + 1] + el * d1l) + fr * (R[V_CCOV + 1] + er * d1r)
+        q2 = fl * (L[V_CCOV + 2] + el * d2l) + fr * (R[V_CCOV + 2] + er * d2r)
+        el, er = L[V_CMEAN + 1] - e1, R[V_CMEAN + 1] - e1
+        q3 = fl * (L[V_CCOV + 3] + el * d0l) + fr * (R[V_CCOV + 3] + er * d0r)
+        q4 = fl * (L[V_CCOV + 4] + el * d1l) + fr * (R[V_CCOV + 4] + er * d1r)
+        q5 = fl * (L[V_CCOV + 5] + el * d2l) + fr * (R[V_CCOV + 5] + er * d2r)
+        el, er = L[V_CMEAN + 2] - e2, R[V_CMEAN + 2] - e2
+        q6 = fl * (L[V_CCOV + 6] + el * d0l) + fr * (R[V_CCOV + 6] + er * d0r)
+        q7 = fl * (L[V_CCOV + 7] + el * d1l) + fr * (R[V_CCOV + 7] + er * d1r)
+        q8 = fl * (L[V_CCOV + 8] + el * d2l) + fr * (R[V_CCOV + 8] + er * d2r)
+
+    # normal: area-weighted mean; the cone must contain both children's cones
+    nx = fl * L[V_NORMAL] + fr * R[V_NORMAL]
+    ny = fl * L[V_NORMAL + 1] + fr * R[V_NORMAL + 1]
+    nz = fl * L[V_NORMAL + 2] + fr * R[V_NORMAL + 2]
+    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+    cone = 0.0
+    if nn < 1e-6:  # opposite normals: no meaningful mean, no culling
+        sx, sy, sz = L[V_NORMAL], L[V_NORMAL + 1], L[V_NORMAL + 2]
+        cone = _f32(math.pi)
+    else:
+        nx, ny, nz = nx / nn, ny / nn, nz / nn
+        sx, sy, sz = _f32(nx), _f32(ny), _f32(nz)  # as stored
+        if full:
+            wide = 0.0
+            for c in (L, R):
+                dot = nx * c[V_NORMAL] + ny * c[V_NORMAL + 1] + nz * c[V_NORMAL + 2]
+                ang = math.acos(min(1.0, max(-1.0, dot))) + c[V_CONE]
+                wide = max(wide, ang)
+            # float32 storage: round the angle up a little so the cone stays conservative
+            cone = _f32(min(math.pi, wide * (1.0 + 1e-6) + 1e-6))
+
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    if full:
+        # the colour gradient in the node's tangent frame, from its normal as stored
+        # (float32), so that the projection derives the same frame
+        ux, uy, uz, vx, vy, vz = tangent_frame(sx, sy, sz)
+        g0 = _f32(q0 * ux + q1 * uy + q2 * uz)
+        g1 = _f32(q0 * vx + q1 * vy + q2 * vz)
+        g2 = _f32(q3 * ux + q4 * uy + q5 * uz)
+        g3 = _f32(q3 * vx + q4 * vy + q5 * vz)
+        g4 = _f32(q6 * ux + q7 * uy + q8 * uz)
+        g5 = _f32(q6 * vx + q7 * vy + q8 * vz)
+
+    # the sphere (centred on the node's bounding box, _sphere) must also contain both
+    # children's spheres; the extra slack covers the float32 rounding of centres
+    rad = extent
+    for c in (L, R):
+        dx = c[V_CENTER] - cx
+        dy = c[V_CENTER + 1] - cy
+        dz = c[V_CENTER + 2] - cz
+        rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + c[V_BOUND])
+    bound = _f32(rad * (1.0 + 1e-6) + 4e-7 * (abs(cx) + abs(cy) + abs(cz)))
+
+    return (cx, cy, cz, bound, extent, _f32(m0), _f32(m1), _f32(m2), sx, sy, sz, cone,
+            red, green, blue, opacity, _f32(a), _f32(sigma_r2),
+            _f32(3.0 * c0), _f32(3.0 * c1), _f32(3.0 * c2), _f32(3.0 * c3), _f32(3.0 * c4),
+            _f32(3.0 * c5), g0, g1, g2, g3, g4, g5,
+            g, m0, m1, m2, c0, c1, c2, c3, c4, c5, e0, e1, e2, q0, q1, q2, q3, q4, q5, q6, q7, q8)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def load_attributes(i, center, bound, extent, position, normal, cone, color, opacity, area,
+                    sigma_r2, lod_cov, color_grad):
+    """Row i of the attribute arrays: the first V_GEO values of ``_combine``'s tuple."""
+    f = np.float64
+    return (f(center[i, 0]), f(center[i, 1]), f(center[i, 2]), f(bound[i]), f(extent[i]),
+            f(position[i, 0]), f(position[i, 1]), f(position[i, 2]), f(normal[i, 0]),
+            f(normal[i, 1]), f(normal[i, 2]), f(cone[i]), f(color[i, 0]), f(color[i, 1]),
+            f(color[i, 2]), f(opacity[i]), f(area[i]), f(sigma_r2[i]), f(lod_cov[i, 0]),
+            f(lod_cov[i, 1]), f(lod_cov[i, 2]), f(lod_cov[i, 3]), f(lod_cov[i, 4]),
+            f(lod_cov[i, 5]), f(color_grad[i, 0]), f(color_grad[i, 1]), f(color_grad[i, 2]),
+            f(color_grad[i, 3]), f(color_grad[i, 4]), f(color_grad[i, 5]))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _load(i, center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
+          lod_cov, color_grad, geo, mean, cov, cmean, ccov):
+    """Node i's values from the build's arrays (``_combine``'s tuple)."""
+    return load_attributes(i, center, bound, extent, position, normal, cone, color, opacity,
+                           area, sigma_r2, lod_cov, color_grad) + (
+        geo[i], mean[i, 0], mean[i, 1], mean[i, 2], cov[i, 0], cov[i, 1], cov[i, 2],
+        cov[i, 3], cov[i, 4], cov[i, 5], cmean[i, 0], cmean[i, 1], cmean[i, 2], ccov[i, 0],
+        ccov[i, 1], ccov[i, 2], ccov[i, 3], ccov[i, 4], ccov[i, 5], ccov[i, 6], ccov[i, 7],
+        ccov[i, 8])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def store_attributes(v, t, center, bound, extent, position, normal, cone, color, opacity,
+                     area, sigma_r2, lod_cov, color_grad):
+    """A node's values ``v`` into row t of the attribute arrays (ATTRIBUTES' order)."""
+    for d in range(3):
+        center[t, d] = v[V_CENTER + d]
+        position[t, d] = v[V_POSITION + d]
+        normal[t, d] = v[V_NORMAL + d]
+        color[t, d] = v[V_COLOR + d]
+    bound[t] = v[V_BOUND]
+    extent[t] = v[V_EXTENT]
+    cone[t] = v[V_CONE]
+    opacity[t] = v[V_OPACITY]
+    area[t] = v[V_AREA]
+    sigma_r2[t] = v[V_SIGMA_R2]
+    for d in range(6):
+        lod_cov[t, d] = v[V_LOD_COV + d]
+        color_grad[t, d] = v[V_COLOR_GRAD + d]
 
 
 @numba.njit(cache=True, nogil=True)
 def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, alpha,
-               center, bound, position, normal, cone, color, opacity, area, sigma_r2, lod_cov,
-               color_grad, level):
-    """Fill the node arrays, children before parents (reverse preorder)."""
+               center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
+               lod_cov, color_grad):
+    """Fill the node arrays, children before parents (reverse preorder); each node's sphere
+    (center, extent) is there already (``_node_spheres``)."""
     m_nodes = count.shape[0]
     # geometric area of each node (r_u r_v summed, no normalisation weights): weights sigma_r2
     geo = np.empty(m_nodes, np.float64)
@@ -446,104 +692,156 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
     for i in range(m_nodes - 1, -1, -1):
         m = count[i]
         if m == 1:
-            k = order[start[i]]
-            a_geo = np.float64(ru[k]) * np.float64(rv[k])
-            geo[i] = a_geo
-            area[i] = a_geo * weight[k]
-            for d in range(3):
-                position[i, d] = positions[k, d]
-                normal[i, d] = normals[k, d]
-                color[i, d] = colors[k, d]
-            cone[i] = 0.0
-            opacity[i] = alpha[k]
-            sigma_r2[i] = 0.25 * a_geo
-            for d in range(3):
-                mean[i, d] = positions[k, d]
-                cmean[i, d] = colors[k, d]
-            for d in range(6):
-                cov[i, d] = 0.0
-                lod_cov[i, d] = 0.0
-                color_grad[i, d] = 0.0
-            for d in range(9):
-                ccov[i, d] = 0.0
-            level[i] = 0
-            continue
-        l = i + 1
-        r = i + 2 * (m // 2)
-        al, ar = np.float64(area[l]), np.float64(area[r])
-        a = al + ar
-        # area-weighted means; equal weights if both children carry no area
-        if a > 0.0:
-            fl, fr = al / a, ar / a
+            v = _surfel_leaf(order[start[i]], positions, normals, ru, rv, weight, colors, alpha)
         else:
-            fl = fr = 0.5
-        area[i] = a
-        opacity[i] = fl * opacity[l] + fr * opacity[r]
+            v = _combine(_load(i + 1, center, bound, extent, position, normal, cone, color,
+                               opacity, area, sigma_r2, lod_cov, color_grad, geo, mean, cov,
+                               cmean, ccov),
+                         _load(i + 2 * (m // 2), center, bound, extent, position, normal, cone,
+                               color, opacity, area, sigma_r2, lod_cov, color_grad, geo, mean,
+                               cov, cmean, ccov),
+                         np.float64(center[i, 0]), np.float64(center[i, 1]),
+                         np.float64(center[i, 2]), np.float64(extent[i]), True)
+        store_attributes(v, i, center, bound, extent, position, normal, cone, color, opacity,
+                         area, sigma_r2, lod_cov, color_grad)
+        geo[i] = v[V_GEO]
         for d in range(3):
-            color[i, d] = fl * color[l, d] + fr * color[r, d]
-        gl, gr = geo[l], geo[r]
-        g = gl + gr
-        geo[i] = g
-        sigma_r2[i] = (gl * sigma_r2[l] + gr * sigma_r2[r]) / g
-        # parallel-axis combination of the children's moments
-        for d in range(3):
-            mean[i, d] = fl * mean[l, d] + fr * mean[r, d]
-            position[i, d] = mean[i, d]
-        d0l, d1l, d2l = mean[l, 0] - mean[i, 0], mean[l, 1] - mean[i, 1], mean[l, 2] - mean[i, 2]
-        d0r, d1r, d2r = mean[r, 0] - mean[i, 0], mean[r, 1] - mean[i, 1], mean[r, 2] - mean[i, 2]
-        cov[i, 0] = fl * (cov[l, 0] + d0l * d0l) + fr * (cov[r, 0] + d0r * d0r)
-        cov[i, 1] = fl * (cov[l, 1] + d0l * d1l) + fr * (cov[r, 1] + d0r * d1r)
-        cov[i, 2] = fl * (cov[l, 2] + d0l * d2l) + fr * (cov[r, 2] + d0r * d2r)
-        cov[i, 3] = fl * (cov[l, 3] + d1l * d1l) + fr * (cov[r, 3] + d1r * d1r)
-        cov[i, 4] = fl * (cov[l, 4] + d1l * d2l) + fr * (cov[r, 4] + d1r * d2r)
-        cov[i, 5] = fl * (cov[l, 5] + d2l * d2l) + fr * (cov[r, 5] + d2r * d2r)
+            mean[i, d] = v[V_MEAN + d]
+            cmean[i, d] = v[V_CMEAN + d]
         for d in range(6):
-            lod_cov[i, d] = 3.0 * cov[i, d]
-        level[i] = max(level[l], level[r]) + 1
-        for c in range(3):
-            cmean[i, c] = fl * cmean[l, c] + fr * cmean[r, c]
-            el, er = cmean[l, c] - cmean[i, c], cmean[r, c] - cmean[i, c]
-            ccov[i, 3 * c] = fl * (ccov[l, 3 * c] + el * d0l) + fr * (ccov[r, 3 * c] + er * d0r)
-            ccov[i, 3 * c + 1] = fl * (ccov[l, 3 * c + 1] + el * d1l) \
-                + fr * (ccov[r, 3 * c + 1] + er * d1r)
-            ccov[i, 3 * c + 2] = fl * (ccov[l, 3 * c + 2] + el * d2l) \
-                + fr * (ccov[r, 3 * c + 2] + er * d2r)
+            cov[i, d] = v[V_COV + d]
+        for d in range(9):
+            ccov[i, d] = v[V_CCOV + d]
 
-        # normal: area-weighted mean; the cone must contain both children's cones
-        nx = fl * normal[l, 0] + fr * normal[r, 0]
-        ny = fl * normal[l, 1] + fr * normal[r, 1]
-        nz = fl * normal[l, 2] + fr * normal[r, 2]
-        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
-        if nn < 1e-6:  # opposite normals: no meaningful mean, no culling
-            normal[i, 0], normal[i, 1], normal[i, 2] = normal[l, 0], normal[l, 1], normal[l, 2]
-            cone[i] = math.pi
-        else:
-            nx, ny, nz = nx / nn, ny / nn, nz / nn
-            normal[i, 0], normal[i, 1], normal[i, 2] = nx, ny, nz
-            wide = 0.0
-            for c in (l, r):
-                dot = nx * normal[c, 0] + ny * normal[c, 1] + nz * normal[c, 2]
-                ang = math.acos(min(1.0, max(-1.0, dot))) + cone[c]
-                wide = max(wide, ang)
-            # float32 storage: round the angle up a little so the cone stays conservative
-            cone[i] = min(math.pi, wide * (1.0 + 1e-6) + 1e-6)
 
-        # the colour gradient in the node's tangent frame, from its normal as stored (float32),
-        # so that the projection derives the same frame
-        ux, uy, uz, vx, vy, vz = tangent_frame(np.float64(normal[i, 0]), np.float64(normal[i, 1]),
-                                               np.float64(normal[i, 2]))
-        for c in range(3):
-            gx, gy, gz = ccov[i, 3 * c], ccov[i, 3 * c + 1], ccov[i, 3 * c + 2]
-            color_grad[i, 2 * c] = gx * ux + gy * uy + gz * uz
-            color_grad[i, 2 * c + 1] = gx * vx + gy * vy + gz * vz
+# -- the nodes that are not stored ------------------------------------------------------------
 
-        # the sphere (centred on the node's bounding box, _node_spheres) must also contain
-        # both children's spheres; the extra slack covers the float32 rounding of centres
-        cx, cy, cz = np.float64(center[i, 0]), np.float64(center[i, 1]), np.float64(center[i, 2])
-        rad = np.float64(bound[i])
-        for c in (l, r):
-            dx = np.float64(center[c, 0]) - cx
-            dy = np.float64(center[c, 1]) - cy
-            dz = np.float64(center[c, 2]) - cz
-            rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + bound[c])
-        bound[i] = rad * (1.0 + 1e-6) + 4e-7 * (abs(cx) + abs(cy) + abs(cz))
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pair(k0, k1, positions, normals, ru, rv, weight, colors, alpha, full):
+    """The values of a node of the two surfels k0, k1 (in leaf order)."""
+    lo0 = min(positions[k0, 0], positions[k1, 0])  # _sphere's, for two surfels
+    hi0 = max(positions[k0, 0], positions[k1, 0])
+    lo1 = min(positions[k0, 1], positions[k1, 1])
+    hi1 = max(positions[k0, 1], positions[k1, 1])
+    lo2 = min(positions[k0, 2], positions[k1, 2])
+    hi2 = max(positions[k0, 2], positions[k1, 2])
+    cx = 0.5 * (np.float64(lo0) + hi0)
+    cy = 0.5 * (np.float64(lo1) + hi1)
+    cz = 0.5 * (np.float64(lo2) + hi2)
+    rad = 0.0
+    for k in (k0, k1):
+        dx = positions[k, 0] - cx
+        dy = positions[k, 1] - cy
+        dz = positions[k, 2] - cz
+        rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + max(ru[k], rv[k]))
+    return _combine(_surfel_leaf(k0, positions, normals, ru, rv, weight, colors, alpha),
+                    _surfel_leaf(k1, positions, normals, ru, rv, weight, colors, alpha),
+                    _f32(cx), _f32(cy), _f32(cz), _f32(rad), full)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, full):
+    """The values (``_combine``'s tuple) of the node of m surfels (m = 2 or 3)
+    whose first leaf is s, which the tree does not store: computed as ``build_hierarchy``
+    computes a node, by the same functions on its subtree, so bit for bit what the build
+    would have stored. full=False leaves out the colour, opacity, gradient and cone."""
+    k0, k1 = order[s], order[s + 1]
+    if m == 2:
+        return _pair(k0, k1, positions, normals, ru, rv, weight, colors, alpha, full)
+    # three surfels: a leaf (the first) and a pair, split as push_children splits
+    cx, cy, cz, rad = _sphere(order, s, s + 3, positions, ru, rv)
+    return _combine(_surfel_leaf(k0, positions, normals, ru, rv, weight, colors, alpha),
+                    _pair(k1, order[s + 2], positions, normals, ru, rv, weight, colors, alpha,
+                          full),
+                    _f32(cx), _f32(cy), _f32(cz), _f32(rad), full)
+
+
+@numba.njit(cache=True, nogil=True)
+def attribute_rows(n):
+    """Empty attribute arrays (ATTRIBUTES' order) of n rows: where a walk puts a node that
+    the tree does not store, to read it as it reads a stored row."""
+    f32 = np.float32
+    return (np.empty((n, 3), f32), np.empty(n, f32), np.empty(n, f32), np.empty((n, 3), f32),
+            np.empty((n, 3), f32), np.empty(n, f32), np.empty((n, 3), f32), np.empty(n, f32),
+            np.empty(n, f32), np.empty(n, f32), np.empty((n, 6), f32), np.empty((n, 6), f32))
+
+
+EXPAND_CHUNK = 4096  # nodes per task of _expand
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _expand(nodes, start, count, rows, order, positions, normals, ru, rv, weight, colors,
+            alpha, center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
+            lod_cov, color_grad, o_center, o_bound, o_extent, o_position, o_normal, o_cone,
+            o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad):
+    """Row t of the o_ arrays = inner node nodes[t]: its stored row, or ``small_node``'s."""
+    n = nodes.shape[0]
+    for c in numba.prange((n + EXPAND_CHUNK - 1) // EXPAND_CHUNK):
+        for t in range(c * EXPAND_CHUNK, min(n, (c + 1) * EXPAND_CHUNK)):
+            i = nodes[t]
+            r = rows[i]
+            if r < 0:
+                v = small_node(start[i], count[i], order, positions, normals, ru, rv, weight,
+                               colors, alpha, True)[:V_GEO]
+            else:
+                v = load_attributes(r, center, bound, extent, position, normal, cone, color,
+                                    opacity, area, sigma_r2, lod_cov, color_grad)
+            store_attributes(v, t, o_center, o_bound, o_extent, o_position, o_normal, o_cone,
+                             o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad)
+
+
+@numba.njit(cache=True, nogil=True)
+def node_height(m):
+    """The height of a node of m surfels (0: a leaf): ceil(log2 m), as the median split
+    halves the count."""
+    h = 0
+    while m > 1:
+        m = (m + 1) // 2
+        h += 1
+    return h
+
+
+@numba.njit(cache=True, nogil=True)
+def stored_nodes(m, small):
+    """How many nodes of a subtree of m surfels the tree stores (those of more than
+    ``small`` surfels). The median split leaves nodes of two sizes at each depth, q and
+    q + 1: count them level by level."""
+    if small == 1:
+        return max(m - 1, 0)  # every inner node
+    total = 0
+    q, n_q, n_q1 = m, 1, 0  # n_q nodes of q surfels, n_q1 of q + 1, at this depth
+    while q > small or (n_q1 > 0 and q + 1 > small):
+        h = q // 2
+        a = b = 0  # the next depth's nodes of h and h + 1 surfels
+        if q > small:  # q -> q // 2 and q - q // 2
+            total += n_q
+            if q % 2 == 0:
+                a += 2 * n_q
+            else:
+                a += n_q
+                b += n_q
+        if n_q1 > 0 and q + 1 > small:  # q + 1 -> (q + 1) // 2 and the rest
+            total += n_q1
+            if (q + 1) % 2 == 0:
+                b += 2 * n_q1
+            else:
+                a += n_q1
+                b += n_q1
+        q, n_q, n_q1 = h, a, b
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def tree_rows(n_surfels, small):
+    """(2N - 1,) int32: every node's row in the stored attribute arrays, in preorder; -1 for
+    the nodes not stored (leaves, and inner nodes of at most ``small`` surfels)."""
+    m_nodes = max(2 * n_surfels - 1, 0)
+    rows = np.full(m_nodes, -1, np.int32)
+    start, count = tree_shape(n_surfels)
+    r = 0
+    for i in range(m_nodes):  # preorder: the stored nodes' rows in order
+        if count[i] > small:
+            rows[i] = r
+            r += 1
+    return rows

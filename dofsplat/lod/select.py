@@ -33,7 +33,8 @@ import math
 import numba
 import numpy as np
 
-from .hierarchy import push_children
+from .hierarchy import (V_COLOR_GRAD, attribute_rows, push_children, small_node,
+                        store_attributes, stored_nodes)
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, tangent_from_normal)
 
@@ -140,112 +141,142 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
 
 
 @numba.njit(cache=True, nogil=True)
-def _walk(root, root_start, root_count, root_depth, max_depth, center, bound, extent, position,
-          normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
-          inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, n_pending):
-    """Depth-first walk of the subtree at node ``root`` (its first leaf and count given):
-    flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth that need
-    a visit are appended to ``pending`` (rows of node, first leaf, count) instead. Returns
-    the new n_pending.
+def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, small, model,
+          view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+          cull_backfaces, flags, pending, n_pending):
+    """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
+    given): flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth
+    that need a visit are appended to ``pending`` (rows of node, first leaf, count, row)
+    instead. Returns the new n_pending.
 
-    A node's first leaf s and count m come down from its parent (left child: s, m // 2;
-    right child: s + m // 2, m - m // 2; the tree's shape depends on N alone), and an
-    inner node's attributes are row i - s."""
-    stack = np.empty((STACK, 4), np.int64)  # node, first leaf, count, depth
+    tree: the stored attribute arrays (``select_nodes``); model: the surfel arrays that
+    ``small_node`` reads for a node of at most ``small`` surfels (``Hierarchy.small``),
+    which the tree does not store. A node's first leaf s and count m come down from its parent (left
+    child: s, m // 2; right child: s + m // 2, m - m // 2; the tree's shape depends on N
+    alone), and so does a stored node's row (left child: the parent's + 1; right child:
+    that + the left subtree's stored nodes)."""
+    center, bound, extent, position, normal, cone, sigma_r2, lod_cov = tree
+    order, positions, normals, ru, rv, weight, colors, alpha = model
+    # where a small node is put to be visited as a stored row (row 0)
+    w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11 = attribute_rows(1)
+    stack = np.empty((STACK, 5), np.int64)  # node, first leaf, count, depth, row
     stack[0, 0] = root
     stack[0, 1] = root_start
     stack[0, 2] = root_count
     stack[0, 3] = root_depth
+    stack[0, 4] = root_row
     top = 1
     while top > 0:
         top -= 1
-        i, s, m, d = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        i, s, m, d, r = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4]
         if d > max_depth:
             pending[n_pending, 0] = i
             pending[n_pending, 1] = s
             pending[n_pending, 2] = m
+            pending[n_pending, 3] = r
             n_pending += 1
             continue
         if m == 1:
             flags[i] = SELECT  # a leaf: its surfel (visit_node's first rule)
             continue
-        what = visit_node(i - s, m, center, bound, extent, position, normal, cone, sigma_r2,
-                          lod_cov, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-                          cutoff, thr2, kappa, cull_backfaces)
+        if m > small:
+            what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
+                              lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
+                              inv_focus, cutoff, thr2, kappa, cull_backfaces)
+        else:
+            v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
+            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11)
+            what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, view, ax, bx, ay, by,
+                              near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+                              cull_backfaces)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
             stack[top + 1, 3] = d + 1
+            stack[top + 1, 4] = r + 1  # the left child (pushed second)
+            stack[top, 4] = r + 1 + stored_nodes(m // 2, small)
             top = push_children(stack, top, i, s, m)
     return n_pending
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def select_nodes(n_surfels, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
-                 view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-                 kappa, cull_backfaces, flags):
+def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k,
+                 inv_focus, cutoff, thr2, kappa, cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
     node whose children were visited, and 0 for the rest (below a selected or culled node).
-    ``cut_nodes`` reads the cut from the flags."""
+    ``cut_nodes`` reads the cut from the flags.
+
+    tree: the hierarchy's (center, bound, extent, position, normal, cone, sigma_r2,
+    lod_cov), and its ``small``; model: the surfels' (order (the tree's), positions,
+    normals, r_u, r_v, weight, colors, opacity), for the nodes the tree does not store
+    (``small_node``)."""
     flags[:] = 0
-    pending = np.empty((1 << (SPLIT_DEPTH + 1), 3), np.int64)
-    n_pending = _walk(0, 0, n_surfels, 0, SPLIT_DEPTH - 1, center, bound, extent, position,
-                      normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height,
-                      coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, pending, 0)
-    dummy = np.empty((1, 3), np.int64)
+    pending = np.empty((1 << (SPLIT_DEPTH + 1), 4), np.int64)
+    n_pending = _walk(0, 0, n_surfels, 0, 0, SPLIT_DEPTH - 1, tree, small, model, view, ax,
+                      bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+                      cull_backfaces, flags, pending, 0)
+    dummy = np.empty((1, 4), np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t, 0], pending[t, 1], pending[t, 2], 0, STACK, center, bound, extent,
-              position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
-              height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces, flags, dummy, 0)
+        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], 0, STACK, tree, small,
+              model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
+              kappa, cull_backfaces, flags, dummy, 0)
 
 
 @numba.njit(cache=True, nogil=True)
-def cut_nodes(flags, n_surfels):
-    """The selected nodes in preorder, with each one's first leaf and count: (nodes (S,)
-    int64, start (S,) int32, count (S,) int32), from ``select_nodes``' flags, by walking
-    the visited part of the tree again (no per-node start or count array is stored)."""
+def cut_nodes(flags, n_surfels, small):
+    """The selected nodes in preorder, with each one's first leaf, count and row: (nodes
+    (S,) int32, start (S,) int32, count (S,) int32, row (S,) int32: the node's row in the
+    tree's attribute arrays, -1 where it stores none: ``small``), from ``select_nodes``' flags, by
+    walking the visited part of the tree again (no per-node start or count array is
+    stored)."""
     n = 0
     for i in range(flags.shape[0]):
         if flags[i] == SELECT:
             n += 1
-    nodes = np.empty(n, np.int64)
+    nodes = np.empty(n, np.int32)
     start = np.empty(n, np.int32)
     count = np.empty(n, np.int32)
-    stack = np.empty((STACK, 3), np.int64)
+    row = np.empty(n, np.int32)
+    stack = np.empty((STACK, 4), np.int64)
     stack[0, 0] = 0
     stack[0, 1] = 0
     stack[0, 2] = n_surfels
+    stack[0, 3] = 0
     top = 1
     t = 0
     while top > 0:
         top -= 1
-        i, s, m = stack[top, 0], stack[top, 1], stack[top, 2]
+        i, s, m, r = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         f = flags[i]
         if f == SELECT:
             nodes[t] = i
             start[t] = s
             count[t] = m
+            row[t] = r if m > small else -1
             t += 1
         elif f == DESCEND:
+            stack[top + 1, 3] = r + 1
+            stack[top, 3] = r + 1 + stored_nodes(m // 2, small)
             top = push_children(stack, top, i, s, m)
-    return nodes, start, count
+    return nodes, start, count, row
 
 
 # inlined at numba's level, like project_splat; the CUDA backend compiles it as its device twin
 @numba.njit(cache=True, nogil=True, inline="always")
-def gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
+def gather_splat(t, r, order, start, count, position, normal, color, opacity, area,
                  sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight,
                  out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv, out_area,
                  out_cov, out_level):
-    """Row t of the splat arrays: node nodes[t], whose first leaf and count are start[t]
-    and count[t] (``cut_nodes``; ``gather_splats``; one GPU thread per row).
+    """Row t of the splat arrays: the node whose first leaf and count are start[t] and
+    count[t] (``cut_nodes``; ``gather_splats``; one GPU thread per row); an inner node's
+    attributes are row r of position, normal, ... (``small_node``'s work arrays for a node
+    the tree does not store).
 
     s_tan, s_rv: (0, 3) and (0,) for circular surfels; s_weight: (0,) without weights.
     """
     elliptical = s_tan.shape[0] > 0
     has_weight = s_weight.shape[0] > 0
-    i = nodes[t]
-    k, ru, rv, a = node_splat(i, start[t], count[t], order, sigma_r2, area, s_ru, s_rv,
+    k, ru, rv, a = node_splat(r, start[t], count[t], order, sigma_r2, area, s_ru, s_rv,
                               s_weight, elliptical, has_weight)
     if k >= 0:  # a leaf: its surfel, unchanged
         for d in range(3):
@@ -259,8 +290,7 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
         for d in range(6):
             out_cov[t, d] = 0.0
         out_level[t] = 0
-    else:  # an inner node: its prefiltered attributes and LOD filter, row i - start
-        r = i - start[t]
+    else:  # an inner node: its prefiltered attributes and LOD filter
         for d in range(3):
             out_pos[t, d] = position[r, d]
             out_nrm[t, d] = normal[r, d]
@@ -283,50 +313,72 @@ def gather_splat(t, nodes, order, start, count, position, normal, color, opacity
     out_area[t] = a
 
 
+GATHER_CHUNK = 4096  # rows per task of gather_splats (one set of small_node's work arrays each)
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
-def gather_splats(nodes, order, start, count, position, normal, color, opacity, area,
+def gather_splats(rows, order, start, count, position, normal, color, opacity, area,
                   sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
                   s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
-                  out_area, out_cov, out_level):
+                  out_area, out_cov, out_level, out_grad):
     """Fill the splat arrays (one row per selected node) from the tree and the surfels;
-    start, count: each selected node's first leaf and count (``cut_nodes``).
+    rows, start, count: each selected node's row, first leaf and count (``cut_nodes``).
 
     A leaf is its surfel, unchanged; an inner node is a circular splat at its mean position
-    with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter.
+    with the leaf basis radius 2 sqrt(V^r), its area, prefiltered colour and LOD filter. A
+    node the tree does not store (row -1) is computed from its surfels (``small_node``),
+    its colour gradient too (``gather_gradients`` fills the other rows').
     """
-    for t in numba.prange(nodes.shape[0]):
-        gather_splat(t, nodes, order, start, count, position, normal, color, opacity, area,
-                     sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv,
-                     s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan, out_ru, out_rv,
-                     out_area, out_cov, out_level)
+    n = rows.shape[0]
+    rv = s_rv if s_rv.shape[0] > 0 else s_ru  # small_node reads r_v for round surfels too
+    for c in numba.prange((n + GATHER_CHUNK - 1) // GATHER_CHUNK):
+        w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11 = attribute_rows(1)
+        for t in range(c * GATHER_CHUNK, min(n, (c + 1) * GATHER_CHUNK)):
+            r = rows[t]
+            if r >= 0 or count[t] == 1:
+                gather_splat(t, r, order, start, count, position, normal, color, opacity, area,
+                             sigma_r2, lod_cov, s_pos, s_nrm, s_col, s_alpha, s_tan, s_ru,
+                             s_rv, s_weight, out_pos, out_nrm, out_col, out_alpha, out_tan,
+                             out_ru, out_rv, out_area, out_cov, out_level)
+                continue
+            v = small_node(start[t], count[t], order, s_pos, s_nrm, s_ru, rv, s_weight, s_col,
+                           s_alpha, True)
+            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11)
+            gather_splat(t, 0, order, start, count, w3, w4, w6, w7, w8, w9, w10, s_pos,
+                         s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight, out_pos, out_nrm,
+                         out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
+                         out_level)
+            for d in range(6):
+                out_grad[t, d] = v[V_COLOR_GRAD + d]
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def gather_gradients(nodes, start, count, color_grad, out):
+def gather_gradients(rows, count, color_grad, out):
     """``gather_gradient`` for every row."""
-    for t in numba.prange(nodes.shape[0]):
-        gather_gradient(t, nodes, start, count, color_grad, out)
+    for t in numba.prange(rows.shape[0]):
+        gather_gradient(t, rows[t], count, color_grad, out)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def gather_gradient(t, nodes, start, count, color_grad, out):
-    """out[t] = the colour gradient of node nodes[t] (first leaf start[t], count count[t]):
-    its row of ``color_grad`` (inner nodes only, row i - start), zero for a leaf (a surfel's
-    colour is flat). Shared with the CUDA backend, one thread per row."""
+def gather_gradient(t, r, count, color_grad, out):
+    """out[t] = the colour gradient of the node of count[t] surfels whose attributes are
+    row r: that row of ``color_grad`` for an inner node, zero for a leaf (a surfel's colour
+    is flat); a node the tree does not store (r < 0) is left alone (``gather_splats``
+    writes it). Shared with the CUDA backend, one thread per row."""
     if count[t] > 1:
-        r = nodes[t] - start[t]
-        for d in range(6):
-            out[t, d] = color_grad[r, d]
+        if r >= 0:
+            for d in range(6):
+                out[t, d] = color_grad[r, d]
     else:
         for d in range(6):
             out[t, d] = 0.0
 
 
 @numba.njit(cache=True, nogil=True)
-def node_splat(i, s, m, order, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
+def node_splat(row, s, m, order, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
                has_weight):
-    """Node i, first leaf s and m surfels, as a splat: (k, r_u, r_v, area), for
-    ``gather_splat``.
+    """The node of m surfels from first leaf s, its attributes (if inner) in row ``row``,
+    as a splat: (k, r_u, r_v, area), for ``gather_splat``.
 
     A leaf is its surfel k, unchanged (its radii, and the area r_u r_v weight it stands
     for); an inner node (k = -1) is circular, with the leaf basis radius 2 sqrt(V^r), and
@@ -342,6 +394,5 @@ def node_splat(i, s, m, order, sigma_r2, area, s_ru, s_rv, s_weight, elliptical,
         if has_weight:
             a *= s_weight[k]
         return k, np.float64(ru), np.float64(rv), np.float64(a)
-    row = i - s  # the tree keeps inner nodes only (lod/hierarchy.py)
     r = 2.0 * math.sqrt(sigma_r2[row])
     return -1, r, r, np.float64(area[row])
