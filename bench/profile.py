@@ -120,8 +120,14 @@ def main(argv=None) -> int:
     ap.add_argument("--max-splat-rows", type=int,
                     help="RenderSettings(max_splat_rows=...): an LOD cut of more splats is "
                          "projected band by band (default: a quarter of the memory available)")
+    ap.add_argument("--tree", choices=["auto", "full", "compact"], default="auto",
+                    help="the LOD tree's layout: compact leaves out the nodes of 2 or 3 "
+                         "surfels (default: compact from lod.hierarchy.COMPACT_FROM surfels)")
     ap.add_argument("--big-frame", type=float, help=argparse.SUPPRESS)  # the subprocess
     args = ap.parse_args(argv)
+    if args.tree != "auto":  # every tree this process builds
+        import dofsplat.lod.hierarchy as hierarchy
+        hierarchy.COMPACT_FROM = 0 if args.tree == "compact" else 1 << 62
     settings = ds.RenderSettings(exact_normalization=not args.no_exact,
                                  sharp_visibility=args.sharp_visibility,
                                  max_splat_rows=args.max_splat_rows)
@@ -141,6 +147,7 @@ def main(argv=None) -> int:
                                       ]
                                       + ["--max-splat-rows", str(args.max_splat_rows)] * (
                                           args.max_splat_rows is not None)
+                                      + ["--tree", args.tree]
                                       + ["--no-exact"] * args.no_exact
                                       + ["--sharp-visibility"] * args.sharp_visibility,
                                       capture_output=True, text=True, check=True)

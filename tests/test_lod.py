@@ -204,6 +204,11 @@ def test_save_load_and_invalidation(tmp_path, bumpy):
     for name in ("order", "count", "center", "bound", "lod_cov", "color", "color_grad", "rows"):
         np.testing.assert_array_equal(getattr(back, name), getattr(tree, name))
     assert back.small == tree.small == 3
+    # rows that do not match the layout (a file written by other code) are refused: the
+    # walk reads rows without bounds checks
+    short = replace(tree, center=tree.center[:-1]).save(tmp_path / "short.lod.npz")
+    with pytest.raises(ds.DofsplatError, match="do not match its layout"):
+        Hierarchy.load(short)
     changed = replace(s, colors=s.colors.copy())
     changed.colors[5, 0] = 0.123
     assert Hierarchy.load(path, changed) is None  # a changed model invalidates the file

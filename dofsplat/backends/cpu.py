@@ -90,9 +90,9 @@ CUT_CHUNK = 1 << 20
 
 def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
              times: dict):
-    """``draw`` for an LOD cut (``select_cut``: its nodes, first leaves, counts): each CUT_CHUNK
-    nodes are gathered (``lod.gather_cut``), shaded and projected into their rows of one
-    splat buffer before the next are, so the gathered nodes of the whole cut never exist at
+    """``draw`` for an LOD cut (``select_cut``: its nodes, first leaves, counts, rows): each
+    CUT_CHUNK nodes are gathered (``lod.gather_cut``), shaded and projected into their rows
+    of one splat buffer before the next are, so the gathered nodes of the whole cut never exist at
     once. The splats are those of ``draw(select(...))``, row for row. A cut of more than
     ``frame.splat_rows_budget`` nodes is drawn band by band instead (``draw_cut_banded``).
     Adds the gathers and the shading to times["select_ms"] and times["shade_ms"]."""
@@ -268,7 +268,7 @@ def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
 def select_cut(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
                hierarchy=None, parts=None):
     """This frame's LOD cut, ``select``'s before the gather: (nodes in preorder, their first
-    leaves, their counts) (``lod.select_cut``)."""
+    leaves, their counts, their rows in the tree's arrays), int32 each (``lod.select_cut``)."""
     from ..lod import select_cut as cut
 
     tree = lod_tree(surfels, hierarchy)

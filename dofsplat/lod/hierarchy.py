@@ -17,7 +17,7 @@ over a large model (``COMPACT_FROM`` surfels or more) does not store its inner n
 2 or 3 surfels either (``Hierarchy.small`` = 3, else 1): they are half to two thirds of
 the inner nodes, and the selection and the gather compute one from its surfels when they
 reach it (``small_node``, by the build's own functions, so bit for bit what the build
-would have stored), which costs the selection about twice its time. The attributes below
+would have stored), which costs the selection 1.4-1.9 x its time. The attributes below
 are stored for the other nodes, in preorder (``tree_rows``; a walk down the tree counts
 them with ``stored_nodes``). Each node carries what the per-frame selection and the
 splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of detail"):
@@ -68,8 +68,9 @@ from ..surfels import Surfels
 # about 90 degrees apart) is split by normal, not by position (docs/maths.md)
 NORMAL_SPREAD = 1.4
 # from this many surfels on, inner nodes of at most SMALL_NODE surfels are not stored (they
-# are computed when a walk reaches them): the tree's memory, 125 bytes per surfel, falls by
-# half or more, and a frame's selection takes about twice as long (bench/RESULTS.md)
+# are computed when a walk reaches them): the tree's memory falls from 124 bytes per surfel
+# to 44-64 (the share of such nodes depends on N), and a frame's selection takes 1.4-1.9 x
+# as long (bench/RESULTS.md)
 COMPACT_FROM = 1 << 22
 SMALL_NODE = 3
 FORMAT_VERSION = 7  # bump when the build or the stored arrays change: old files are rebuilt
@@ -169,7 +170,7 @@ class Hierarchy:
         name (center, bound, ...). For the CUDA backend, whose walk reads every inner
         node's row, and for the tests."""
         if self.n_surfels != len(surfels):
-            raise ValueError("the hierarchy was built for a different model")
+            raise DofsplatError("the hierarchy was built for a different model")
         nodes = np.flatnonzero(self.count > 1)
         full = {name: np.empty((nodes.size,) + getattr(self, name).shape[1:], np.float32)
                 for name in ATTRIBUTES}
@@ -228,6 +229,10 @@ class Hierarchy:
             raise DofsplatError(f"{path}: not a dofsplat LOD file ({exc})") from None
         if surfels is not None and fp != fingerprint(surfels):
             return None
+        if small not in (1, SMALL_NODE) or len(data["center"]) != stored_nodes(
+                len(data["order"]), small):
+            raise DofsplatError(f"{path}: not a dofsplat LOD file (its rows do not match its "
+                                f"layout)")
         tree = cls(fingerprint=fp, small=small, **data)
         if surfels is not None and tree.n_surfels != len(surfels):
             return None

@@ -52,8 +52,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
                ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                thr2, kappa, cull_backfaces):
     """CULL, SELECT or DESCEND for a node of m surfels whose attributes are row r of the
-    tree's arrays (internal nodes only: r = i - start[i], ``lod/hierarchy.py``; see the
-    module docstring)."""
+    given arrays (the tree's stored row, ``Hierarchy.row``; or a node the tree does not
+    store, put in row 0 of arrays of its own; see the module docstring)."""
     if m == 1:
         # a leaf is one surfel: the projection culls it exactly (near plane, back face,
         # outside the image), so the tests below would only repeat that work
