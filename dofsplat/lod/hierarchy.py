@@ -723,25 +723,12 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _pair(k0, k1, positions, normals, ru, rv, weight, colors, alpha, full):
-    """The values of a node of the two surfels k0, k1 (in leaf order)."""
-    lo0 = min(positions[k0, 0], positions[k1, 0])  # _sphere's, for two surfels
-    hi0 = max(positions[k0, 0], positions[k1, 0])
-    lo1 = min(positions[k0, 1], positions[k1, 1])
-    hi1 = max(positions[k0, 1], positions[k1, 1])
-    lo2 = min(positions[k0, 2], positions[k1, 2])
-    hi2 = max(positions[k0, 2], positions[k1, 2])
-    cx = 0.5 * (np.float64(lo0) + hi0)
-    cy = 0.5 * (np.float64(lo1) + hi1)
-    cz = 0.5 * (np.float64(lo2) + hi2)
-    rad = 0.0
-    for k in (k0, k1):
-        dx = positions[k, 0] - cx
-        dy = positions[k, 1] - cy
-        dz = positions[k, 2] - cz
-        rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + max(ru[k], rv[k]))
-    return _combine(_surfel_leaf(k0, positions, normals, ru, rv, weight, colors, alpha),
-                    _surfel_leaf(k1, positions, normals, ru, rv, weight, colors, alpha),
+def _pair(s, order, positions, normals, ru, rv, weight, colors, alpha, full):
+    """The values of a node of the two surfels order[s], order[s + 1]."""
+    cx, cy, cz, rad = _sphere(order, s, s + 2, positions, ru, rv)
+    return _combine(_surfel_leaf(order[s], positions, normals, ru, rv, weight, colors, alpha),
+                    _surfel_leaf(order[s + 1], positions, normals, ru, rv, weight, colors,
+                                 alpha),
                     _f32(cx), _f32(cy), _f32(cz), _f32(rad), full)
 
 
@@ -751,14 +738,12 @@ def small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, f
     whose first leaf is s, which the tree does not store: computed as ``build_hierarchy``
     computes a node, by the same functions on its subtree, so bit for bit what the build
     would have stored. full=False leaves out the colour, opacity, gradient and cone."""
-    k0, k1 = order[s], order[s + 1]
     if m == 2:
-        return _pair(k0, k1, positions, normals, ru, rv, weight, colors, alpha, full)
+        return _pair(s, order, positions, normals, ru, rv, weight, colors, alpha, full)
     # three surfels: a leaf (the first) and a pair, split as push_children splits
     cx, cy, cz, rad = _sphere(order, s, s + 3, positions, ru, rv)
-    return _combine(_surfel_leaf(k0, positions, normals, ru, rv, weight, colors, alpha),
-                    _pair(k1, order[s + 2], positions, normals, ru, rv, weight, colors, alpha,
-                          full),
+    return _combine(_surfel_leaf(order[s], positions, normals, ru, rv, weight, colors, alpha),
+                    _pair(s + 1, order, positions, normals, ru, rv, weight, colors, alpha, full),
                     _f32(cx), _f32(cy), _f32(cz), _f32(rad), full)
 
 

@@ -33,8 +33,8 @@ import math
 import numba
 import numpy as np
 
-from .hierarchy import (V_COLOR_GRAD, attribute_rows, push_children, small_node,
-                        store_attributes, stored_nodes)
+from .hierarchy import (V_COLOR_GRAD, attribute_rows, node_height, push_children,
+                        small_node, store_attributes, stored_nodes)
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, tangent_from_normal)
 
@@ -301,13 +301,7 @@ def gather_splat(t, r, order, start, count, position, normal, color, opacity, ar
                 out_tan[t, d] = 0.0  # derive the tangent from the normal
         for d in range(6):
             out_cov[t, d] = lod_cov[r, d]
-        # the median split halves the count: the node's height is ceil(log2 count)
-        h = 0
-        m = count[t]
-        while m > 1:
-            m = (m + 1) // 2
-            h += 1
-        out_level[t] = h
+        out_level[t] = node_height(count[t])
     out_ru[t] = ru
     out_rv[t] = rv
     out_area[t] = a
