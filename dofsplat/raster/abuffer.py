@@ -178,12 +178,12 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     if a >= OPAQUE:
         acc[p, hit, S_WO] += w
     lo, hi = acc[p, hit, S_ZLO], acc[p, hit, S_ZHI]
-    if zlo >= lo and zhi <= hi:
-        # the range did not grow: the pixel's surfaces stay disjoint (they always are), so
-        # nothing new can merge (most fragments of a surface land here)
-        return overflow
     acc[p, hit, S_ZLO] = min(lo, zlo)
     acc[p, hit, S_ZHI] = max(hi, zhi)
+    if n == 1 or (zlo >= lo and zhi <= hi):
+        # the pixel's only surface, or the range did not grow: the pixel's surfaces stay
+        # disjoint (they always are), so nothing new can merge
+        return overflow
     # the united range may now reach other surfaces: they are the same surface
     j = 0
     while j < cnt[p]:
