@@ -216,6 +216,30 @@ def test_image_does_not_depend_on_thread_count_or_banding(lod):
     assert banded.stats["fragments"] == many.stats["fragments"]
 
 
+@pytest.mark.parametrize("band", [(0, 9), (3, 7)])
+def test_binning_equals_a_stable_sort(band):
+    """bin_splats (runs of splats counted and scattered in parallel) lists each tile's
+    splats in increasing index, as a stable sort of the tile-splat pairs does; enough splats
+    for several runs, invisible ones among them, a band of tile rows."""
+    from dofsplat.raster.abuffer import BIN_RUN, bin_splats
+
+    rng = np.random.default_rng(7)
+    n, tile, n_tx, ty0, ty1 = 3 * BIN_RUN + 123, 16, 12, *band
+    x0, y0 = rng.integers(0, 12 * 16, n), rng.integers(0, 9 * 16, n)
+    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * 16 - 1),
+                     y0, np.minimum(y0 + rng.integers(0, 40, n), 9 * 16 - 1)], 1).astype(np.int32)
+    visible = rng.uniform(size=n) > 0.1
+    pairs = [((ty - ty0) * n_tx + tx, k) for k in np.flatnonzero(visible)
+             for ty in range(max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1) + 1)
+             for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1)]
+    tiles = np.array([t for t, _ in pairs])
+    order = np.argsort(tiles, kind="stable")
+    offsets, ids = bin_splats(bbox, visible, tile, n_tx, ty0, ty1)
+    np.testing.assert_array_equal(ids, np.array([k for _, k in pairs])[order])
+    np.testing.assert_array_equal(offsets, np.searchsorted(tiles[order],
+                                                           np.arange((ty1 - ty0) * n_tx + 1)))
+
+
 def test_focus_distance_at_reads_the_visible_surface():
     s = grid_surfels(n=32, spacing=1.0 / 32, z=0.25)
     cam = front_camera(64, 64, distance=2.0)

@@ -90,34 +90,54 @@ def tile_rows_pairs(bbox, visible, tile, n_ty):
     return per_row
 
 
-@numba.njit(cache=True, nogil=True)
+# bin_splats cuts the splats into at most this many runs of at least BIN_RUN splats, binned
+# in parallel: a fixed cut, so the ids do not depend on the thread count
+BIN_RUNS = 64
+BIN_RUN = 16384
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
     """Counting sort of tile-splat pairs for tile rows ty0..ty1-1.
 
     Returns (offsets, ids): the splats of local tile t = (ty - ty0) * n_tx + tx are
-    ids[offsets[t]:offsets[t+1]], in increasing splat index.
+    ids[offsets[t]:offsets[t+1]], in increasing splat index. The splats are cut into runs,
+    each counted and scattered by one thread; run c's splats of a tile follow those of runs
+    before it.
     """
     n_tiles = (ty1 - ty0) * n_tx
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for k in range(bbox.shape[0]):
-        if not visible[k]:
-            continue
-        a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
-        for ty in range(a, b + 1):
-            for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
-                counts[(ty - ty0) * n_tx + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    cursor = offsets[:-1].copy()
-    ids = np.empty(offsets[-1], np.int32)
-    for k in range(bbox.shape[0]):
-        if not visible[k]:
-            continue
-        a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
-        for ty in range(a, b + 1):
-            for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
-                t = (ty - ty0) * n_tx + tx
-                ids[cursor[t]] = k
-                cursor[t] += 1
+    n = bbox.shape[0]
+    runs = min(max(n // BIN_RUN, 1), BIN_RUNS)
+    counts = np.zeros((runs, n_tiles), np.int64)
+    for c in numba.prange(runs):
+        for k in range(c * n // runs, (c + 1) * n // runs):
+            if not visible[k]:
+                continue
+            a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
+            for ty in range(a, b + 1):
+                for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
+                    counts[c, (ty - ty0) * n_tx + tx] += 1
+    # each run's first slot in each tile (counts becomes the cursors)
+    offsets = np.empty(n_tiles + 1, np.int64)
+    total = 0
+    for t in range(n_tiles):
+        offsets[t] = total
+        for c in range(runs):
+            m = counts[c, t]
+            counts[c, t] = total
+            total += m
+    offsets[n_tiles] = total
+    ids = np.empty(total, np.int32)
+    for c in numba.prange(runs):
+        for k in range(c * n // runs, (c + 1) * n // runs):
+            if not visible[k]:
+                continue
+            a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
+            for ty in range(a, b + 1):
+                for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
+                    t = (ty - ty0) * n_tx + tx
+                    ids[counts[c, t]] = k
+                    counts[c, t] += 1
     return offsets, ids
 
 
