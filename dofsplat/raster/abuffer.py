@@ -26,8 +26,8 @@ import numba
 import numpy as np
 
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
-from ..splat.ewa import (NARROW_BBOX, NARROW_ROWS, coc_radius_px, exponent, row_pixel_range,
-                         row_span, row_start)
+from ..splat.ewa import (NARROW_BBOX, NARROW_ROWS, coc_radius_px, column_start, column_step,
+                         exponent, row_pixel_range, row_span, row_start)
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH, F11, F12, F22,
                              FLOOR, GREEN, GX, GY, GZX, GZY, MIX, MX, MY, RAD, RED, RX, RY, X0,
                              X1, ZHI, ZLO)
@@ -94,6 +94,7 @@ def tile_rows_pairs(bbox, visible, tile, n_ty):
 # in parallel: a fixed cut, so the ids do not depend on the thread count
 BIN_RUNS = 64
 BIN_RUN = 16384
+NO_COLUMN = (0.0,) * 8  # a wide kernel's rows start afresh (ewa.column_start's place)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -106,17 +107,11 @@ def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
     before it.
     """
     n_tiles = (ty1 - ty0) * n_tx
-    n = bbox.shape[0]
-    runs = min(max(n // BIN_RUN, 1), BIN_RUNS)
+    runs = min(max(bbox.shape[0] // BIN_RUN, 1), BIN_RUNS)
     counts = np.zeros((runs, n_tiles), np.int64)
+    ids = np.empty(0, np.int32)
     for c in numba.prange(runs):
-        for k in range(c * n // runs, (c + 1) * n // runs):
-            if not visible[k]:
-                continue
-            a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
-            for ty in range(a, b + 1):
-                for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
-                    counts[c, (ty - ty0) * n_tx + tx] += 1
+        bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, False)
     # each run's first slot in each tile (counts becomes the cursors)
     offsets = np.empty(n_tiles + 1, np.int64)
     total = 0
@@ -129,16 +124,25 @@ def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
     offsets[n_tiles] = total
     ids = np.empty(total, np.int32)
     for c in numba.prange(runs):
-        for k in range(c * n // runs, (c + 1) * n // runs):
-            if not visible[k]:
-                continue
-            a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
-            for ty in range(a, b + 1):
-                for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
-                    t = (ty - ty0) * n_tx + tx
-                    ids[counts[c, t]] = k
-                    counts[c, t] += 1
+        bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, True)
     return offsets, ids
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, scatter):
+    """Run c of ``bin_splats``: its splats' tile-splat pairs counted into counts[c], or with
+    ``scatter`` written to ids at the cursors counts[c] (which advance)."""
+    n = bbox.shape[0]
+    for k in range(c * n // runs, (c + 1) * n // runs):
+        if not visible[k]:
+            continue
+        a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
+        for ty in range(a, b + 1):
+            for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
+                t = (ty - ty0) * n_tx + tx
+                if scatter:
+                    ids[counts[c, t]] = k
+                counts[c, t] += 1
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -636,25 +640,17 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             ia, ib = max(bbox[k, 2], py0), min(bbox[k, 3], py1)
             # a narrow kernel's rows are scanned whole from the same column: each row's first
             # values follow from the previous row's by forward differences down the column
-            # (as in ewa.kernel_pixel_sum: six exps per splat and tile instead of two a row)
+            # (ewa.column_start, as in ewa.kernel_pixel_sum: six exps per splat and tile
+            # instead of two a row)
             narrow = x1 - x0 < NARROW_BBOX and ib - ia < NARROW_ROWS
             ja, jb = max(x0, px0), min(x1, px1)
             if narrow and ja > jb:
                 continue
-            qc, dqr, ec, fr = row_start(ja, ia, mx, my, c11, c12, c22)
-            dqc = c22 * (ia + 0.5 - my) + 0.5 * c22 + c12 * (ja + 0.5 - mx)
-            ecs = math.exp(-dqc) if narrow else 0.0
-            step_c = math.exp(-c22) if narrow else 0.0
-            step_f = math.exp(-c12) if narrow else 0.0
+            col = column_start(ja, ia, mx, my, c11, c12, c22) if narrow else NO_COLUMN
             for i in range(ia, ib + 1):
                 if narrow:
-                    q, dq, e, f = qc, dqr, ec, fr
-                    qc += dqc
-                    dqc += c22
-                    dqr += c12
-                    ec *= ecs
-                    ecs *= step_c
-                    fr *= step_f
+                    q, dq, e, f = col[0], col[1], col[2], col[3]
+                    col = column_step(col, c12, c22)
                 else:
                     j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1)
                     ja, jb = max(j0, px0), min(j1, px1)

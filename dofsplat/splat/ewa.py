@@ -435,6 +435,26 @@ def row_start(j, i, mx, my, c11, c12, c22):
 
 
 @shared
+def column_start(j, i, mx, my, c11, c12, c22):
+    """``row_start`` at pixel (i, j), and what carries it down the column to (i + 1, j):
+    (q, dq, e, f, dqc, g, step_g, step_f) for ``column_step``. Down a column q grows by
+    dqc = q(i + 1, j) - q(i, j), itself growing by c22 a row, and dq by c12; e = exp(-q)
+    and f = exp(-dq) by the factors g = exp(-dqc), step_g = exp(-c22) and step_f =
+    exp(-c12): six exps for a kernel whose rows all start at column j."""
+    q, dq, e, f = row_start(j, i, mx, my, c11, c12, c22)
+    dqc = c22 * (i + 0.5 - my) + 0.5 * c22 + c12 * (j + 0.5 - mx)
+    return q, dq, e, f, dqc, math.exp(-dqc), math.exp(-c22), math.exp(-c12)
+
+
+@shared
+def column_step(col, c12, c22):
+    """``column_start``'s values one row down (forward differences; to ~1e-14 of a fresh
+    ``row_start`` over NARROW_ROWS rows)."""
+    q, dq, e, f, dqc, g, step_g, step_f = col
+    return q + dqc, dq + c12, e * g, f * step_f, dqc + c22, g * step_g, step_g, step_f
+
+
+@shared
 def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
     """Sum of exp(-exponent) - floor over all pixel centres inside the truncated kernel
     (unclipped); floor = e^-c tapers the kernel to 0 at its cutoff, 0 keeps the paper's step."""
@@ -442,22 +462,13 @@ def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
     step2 = math.exp(-c11)
     if x1 - x0 < NARROW_BBOX and y1 - y0 < NARROW_ROWS:
         # every row is scanned whole from x0: the row's first value and step follow from
-        # the previous row's by forward differences down the column too (six exps per
-        # kernel instead of two per row; row_start's values to ~1e-14)
-        q, dq, e, f = row_start(x0, y0, mx, my, c11, c12, c22)
-        dx, dy = x0 + 0.5 - mx, y0 + 0.5 - my
-        dqc = c22 * dy + 0.5 * c22 + c12 * dx  # q(i + 1, x0) - q(i, x0)
-        g = math.exp(-dqc)
-        step_g = math.exp(-c22)
-        step_f = math.exp(-c12)  # the row step grows by c12 per row
+        # the previous row's by forward differences down the column too (column_start:
+        # six exps per kernel instead of two per row)
+        col = column_start(x0, y0, mx, my, c11, c12, c22)
         for _ in range(y0, y1 + 1):
-            total += row_sum(q, dq, e, f, x1 - x0 + 1, c11, step2, cutoff, floor)
-            q += dqc
-            dqc += c22
-            dq += c12
-            e *= g
-            g *= step_g
-            f *= step_f
+            total += row_sum(col[0], col[1], col[2], col[3], x1 - x0 + 1, c11, step2, cutoff,
+                             floor)
+            col = column_step(col, c12, c22)
         return total
     for i in range(y0, y1 + 1):
         j0, j1 = row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1)
