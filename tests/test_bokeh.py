@@ -236,3 +236,39 @@ def test_a_blurred_plane_still_sums_to_one(blades):
     inner = res.alpha[ys.min() + 12:ys.max() - 11, xs.min() + 12:xs.max() - 11]
     assert inner.size > 100
     np.testing.assert_allclose(inner, 1.0, atol=0.1)
+
+
+@pytest.mark.parametrize("blades", [0, 6])
+def test_support_conic_contains_the_kernel(blades):
+    """Every offset where the kernel is not 0 lies inside ``support_conic``'s ellipse (the
+    rasteriser scans a row only over it). Kernels elongated 5:1 to 20:1 and mostly aperture
+    (mix 0.9-0.99): the support's scale across the disc's edge, 1/s_E = sqrt(n^T W n), makes
+    it wider than an ellipse of semi-axes |R| + u_c sqrt(l_i) along the diagonals, where the
+    kernel still reaches about a tenth of its peak (docs/maths.md, "The support")."""
+    from dofsplat.splat.bokeh import aperture_value, support_conic
+
+    table, u_c = aperture_table(CUTOFF), math.sqrt(2 * CUTOFF)
+    normals = blade_normals(blades, 0.0)
+    for case, (l1, l2, radius, turn) in enumerate(
+            [(9.0, 0.45, 6.0, 0.4), (4.0, 0.07, -20.0, 1.0), (12.0, 2.0, 3.0, -0.3),
+             (1.2, 0.06, 8.0, 2.2), (16.0, 0.8, -12.0, 0.8), (1.0, 1.0, 2.0, 0.0)]):
+        c, s = math.cos(turn), math.sin(turn)
+        rot = np.array([[c, -s], [s, c]])
+        W = rot @ np.diag([l1, l2]) @ rot.T
+        Wi = np.linalg.inv(W)
+        mix = edge_mix(radius, W[0, 0], W[1, 1])
+        b11, b12, b22 = support_conic(W[0, 0], W[0, 1], W[1, 1], radius, u_c)
+        reach = abs(radius) + u_c * math.sqrt(l1)
+        xs = np.linspace(-reach, reach, 81)
+        peak, outside = 0.0, 0.0
+        for dx in xs:
+            for dy in xs:
+                q2 = Wi[0, 0] * dx * dx + 2 * Wi[0, 1] * dx * dy + Wi[1, 1] * dy * dy
+                p = W[0, 0] * dx * dx + 2 * W[0, 1] * dx * dy + W[1, 1] * dy * dy
+                v = aperture_value(q2, p, dx, dy, radius, mix, normals, table, u_c,
+                                   Wi[0, 0], W[0, 0])
+                peak = max(peak, v)
+                if b11 * dx * dx + 2 * b12 * dx * dy + b22 * dy * dy >= 1.0:
+                    outside = max(outside, v)
+        assert peak > 0.0
+        assert outside == 0.0, (case, outside / peak)

@@ -257,10 +257,13 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
 @shared
 def support_conic(w11, w12, w22, radius, u_c):
     """The conic (inverse variance) of an ellipse that contains an aperture kernel's
-    support: with W's eigenvalues l_i, the ellipse of semi-axes u_c sqrt(l_i) + |R| along
-    W's eigenvectors. The support lies where |x| < |R(n)| + u_c / s(n), and both scales
-    satisfy 1/s <= sqrt(n^T W n), so it lies in the disc of radius |R| plus the ellipse
-    u_c^2 W, which this ellipse contains. Rows are scanned over it (``row_span`` with
+    support (docs/maths.md, "The support"). Along a direction n the support ends at
+    |x| = |R(n)| + u_c / s(n) <= |R| + u_c h(n), h(n) = sqrt(n^T W n) (both scales satisfy
+    1/s <= h), and (|R| + u_c h)^2 <= n^T G n with G = (1 + 1/k) R^2 I + (1 + k) u_c^2 W,
+    k = |R| / (u_c sqrt(l1)), l1 >= l2 W's eigenvalues: the support lies in the pedal region
+    of the ellipse of G, whose semi-axes are g1 = |R| + u_c sqrt(l1) and g2 along W's
+    eigenvectors, and that region lies in the ellipse of semi-axes g1 and
+    g1^2 / sqrt(2 g1^2 - g2^2). Rows are scanned over this ellipse (``row_span`` with
     cutoff 1/2) instead of over the circle of ``reach``."""
     half_tr = 0.5 * (w11 + w22)
     diff = 0.5 * (w11 - w22)
@@ -277,9 +280,12 @@ def support_conic(w11, w12, w22, radius, u_c):
     else:
         inv = 1.0 / math.sqrt(n2)
         vx, vy = vx * inv, vy * inv
-    a = u_c * math.sqrt(l1) + abs(radius)
-    b = u_c * math.sqrt(l2) + abs(radius)
-    ia, ib = 1.0 / (a * a), 1.0 / (b * b)
+    r = abs(radius)
+    s1 = math.sqrt(l1)
+    g1 = r + u_c * s1
+    g2sq = r * r + r * u_c * s1 + u_c * u_c * l2 + r * u_c * l2 / s1
+    ia = 1.0 / (g1 * g1)
+    ib = (2.0 * g1 * g1 - g2sq) / (g1 * g1 * g1 * g1)  # 1 / b^2
     return ia * vx * vx + ib * vy * vy, (ia - ib) * vx * vy, ia * vy * vy + ib * vx * vx
 
 
