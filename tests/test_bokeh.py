@@ -244,7 +244,7 @@ def test_support_conic_contains_the_kernel(blades):
     rasteriser scans a row only over it). Kernels elongated 5:1 to 20:1 and mostly aperture
     (mix 0.9-0.99): the support's scale across the disc's edge, 1/s_E = sqrt(n^T W n), makes
     it wider than an ellipse of semi-axes |R| + u_c sqrt(l_i) along the diagonals, where the
-    kernel still reaches about a tenth of its peak (docs/maths.md, "The support")."""
+    kernel still reaches 1.5-4 % of its peak in these cases (docs/maths.md, "The support")."""
     from dofsplat.splat.bokeh import aperture_value, support_conic
 
     table, u_c = aperture_table(CUTOFF), math.sqrt(2 * CUTOFF)
