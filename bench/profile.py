@@ -3,6 +3,7 @@
     python bench/profile.py                      # plane, lion 1280x720, demo: a markdown table
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
     python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
+    python bench/profile.py --scenes intersect   # two planes crossing: the front pass's worst
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
@@ -41,7 +42,10 @@ import dofsplat as ds  # noqa: E402
 
 STAGES = ("select_ms", "shade_ms", "project_ms", "bin_ms", "front_ms", "raster_ms", "total_ms")
 APERTURES = {"plane": (0.0, 0.1, 0.4), "lion": (0.0, 0.5, 2.0), "demo": (0.0, 0.12, 0.3),
-             "big": (0.0, 0.1, 0.4), "empty": (0.0,)}
+             "big": (0.0, 0.1, 0.4), "empty": (0.0,),
+             # two planes crossing (the fidelity suite's): a CoC of up to 10 and 20 px, and
+             # most of the rear plane behind the front one (the front pass's worst case)
+             "intersect": (0.0, 0.1, 0.2)}
 BIG_SIDE = 3163  # surfels per side of the big plane: 10,004,569
 
 
@@ -56,6 +60,10 @@ def scene(name: str):
         from table1 import lion_scene
 
         return lion_scene(None, 1280, 720)
+    if name == "intersect":
+        from dofsplat.demo import intersecting_planes_scene
+
+        return intersecting_planes_scene(512, 512)
     if name == "empty":  # a 1280 x 720 frame with nothing in view: the cost per pixel alone
         _, camera, lens = plane_scene(1280, 720)
         far = ds.Surfels(positions=[[0.0, 0.0, 50.0]], normals=[[0.0, 0.0, 1.0]], radius=[0.01],

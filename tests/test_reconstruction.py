@@ -149,3 +149,38 @@ def test_a_surface_hidden_from_the_whole_lens_does_not_merge():
     ref = render_reference(surfels, cam, lens, samples=32, progress=False).image
     img = ds.render(surfels, cam, lens, ds.RenderSettings()).image
     assert psnr(img, ref) > 23.0
+
+
+def test_visibility_equals_its_slow_twin():
+    """``abuffer.splat_visibility`` (its sample points and looks through the lens read from
+    tables) against ``slow.visibility_reference`` (their angles' sines and cosines), every
+    50th splat of the crossing planes blurred, on one front map, to 1e-6 (the two read the
+    same float32 rows and front; 4e-7 measured). The frame takes every branch: splats kept
+    whole, removed whole (hidden from the whole lens) and in part."""
+    import dataclasses
+
+    from dofsplat.backends.cpu import project, shade_surfels
+    from dofsplat.demo import intersecting_planes_scene
+    from dofsplat.frame import merge_parameters
+    from dofsplat.raster.abuffer import (FRONT_FIELDS, TILE, bin_splats, front_band,
+                                         splat_visibility)
+    from dofsplat.slow import visibility_reference
+
+    surfels, cam, lens = intersecting_planes_scene(96, 96)
+    lens = dataclasses.replace(lens, aperture=0.8)
+    st = ds.RenderSettings(lod=False)
+    splats, bbox, visible = project(surfels, shade_surfels(surfels, cam, st), cam, lens, st)
+    # the front map drawn by the fast pass (``front_reference`` is its twin in the frames of
+    # tests/test_render.py; over these 400,000 splats it takes a minute)
+    n_tx, n_ty = -(-cam.width // TILE), -(-cam.height // TILE)
+    front = np.full((cam.width * cam.height, FRONT_FIELDS), np.inf, np.float32)
+    offsets, ids = bin_splats(bbox, visible, TILE, n_tx, 0, n_ty)
+    front_band(splats, bbox, offsets, ids, n_tx, 0, cam.width, cam.height, front)
+    merge = merge_parameters(cam, lens, st)
+    ks = np.flatnonzero(visible)[::50]
+    fast = np.array([splat_visibility(splats, k, front, cam.width, cam.height, *merge)
+                     for k in ks])
+    slow = np.array([visibility_reference(splats[k], front, merge, cam.width) for k in ks])
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-6)
+    assert (fast == 1).sum() > 100 and (fast == 0).sum() > 100, (fast == 0).sum()
+    assert ((fast > 0) & (fast < 1)).sum() > 10
