@@ -3,7 +3,7 @@
     python bench/profile.py                      # plane, lion 1280x720, demo: a markdown table
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
     python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
-    python bench/profile.py --scenes intersect   # two planes crossing: the front pass's worst
+    python bench/profile.py --scenes intersect   # two crossing planes: the front pass's worst case
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
