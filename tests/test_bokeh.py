@@ -184,8 +184,10 @@ def test_kernel_mass_equals_its_pixel_sum(W, radius, blades):
 
 def test_simd_rows_equal_the_scalar_kernel():
     """The rasteriser's rows of a round aperture (bokeh.aperture_rows: SIMD lanes, fast-math)
-    equal the per-pixel kernel (aperture_value) to 1e-9, the centre pixel included (it takes
-    the scales along x in both)."""
+    equal the per-pixel kernel (aperture_value) to 1e-5, the centre pixel included (it takes
+    the scales along x in both). The rows run in float32: offsets |x| up to ~40 px carry a
+    few float32 ulps (6e-8 relative) into u = (|x| - R) s, an error below 1e-5, and T's
+    slope in u is at most e^-1/2 = 0.61 (3.5e-7 measured on these cases; 1e-9 in float64)."""
     from dofsplat.splat.bokeh import ROW, aperture_rows, aperture_value, table_lerp
 
     rng = np.random.default_rng(3)
@@ -203,7 +205,7 @@ def test_simd_rows_equal_the_scalar_kernel():
         if case == 0:
             dx0, dy0, rows = -3.0, -2.0, 5  # the centre (3, 2) is a pixel
         cell = np.empty(ROW * ROW, np.int32)
-        frac = np.empty((2, ROW * ROW))
+        frac = np.empty((2, ROW * ROW), np.float32)  # the rasteriser's
         aperture_rows(cell, frac, rows, dx0, dy0, radius, Wi[0, 0], Wi[0, 1], Wi[1, 1],
                       W[0, 0], W[0, 1], W[1, 1], mix, u_c)
         for e in range(rows * ROW):
@@ -213,7 +215,7 @@ def test_simd_rows_equal_the_scalar_kernel():
             scalar = aperture_value(q2, p, dx, dy, radius, mix, none, table, u_c, Wi[0, 0],
                                     W[0, 0])
             fast = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
-            assert fast == pytest.approx(scalar, abs=1e-9)
+            assert fast == pytest.approx(scalar, abs=1e-5)
         if case == 0:
             assert table_lerp(cell[2 * ROW + 3], frac[0, 2 * ROW + 3], frac[1, 2 * ROW + 3],
                               flat) > 0.9

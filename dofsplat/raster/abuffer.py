@@ -576,7 +576,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     accs = np.empty((pool, TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
     cnts = np.empty((pool, TILE * TILE), np.int64)
     cells = np.empty((pool, TILE * TILE), np.int32)  # an aperture kernel's table cells
-    fracs = np.empty((pool, 2, TILE * TILE), np.float64)
+    fracs = np.empty((pool, 2, TILE * TILE), np.float32)
     ress = np.empty((pool, 7), np.float64)
     orders = np.empty((pool, MAX_SURFACES), np.int64)
     scratches = np.empty((pool, RESOLVE_SCRATCH), np.float64)

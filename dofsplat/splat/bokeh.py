@@ -234,24 +234,40 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
     chain one pixel to the next) and without a branch, so that it runs in SIMD lanes; the
     lanes outside a row's span cost less than a scalar loop over the span
     (bench/RESULTS.md). The centre (x = 0) takes the scales along x (``aperture_value``)."""
-    rad = abs(radius)  # a disc is its own image turned by 180 degrees
+    # in float32, the table's cell too (table_index's steps): twice the SIMD lanes of
+    # float64, and frames equal to ~1e-7 (bench/RESULTS.md). A conversion to float64 on
+    # the way, or a float64 frac, costs all of that back.
+    f32 = np.float32
+    rad = f32(abs(radius))  # a disc is its own image turned by 180 degrees
+    x0, y0 = f32(dx0), f32(dy0)
+    a11, a12, a22 = f32(c11), f32(c12), f32(c22)
+    v11, v12, v22 = f32(w11), f32(w12), f32(w22)
+    m, uc = f32(mix), f32(u_c)
+    su = f32((TABLE_U - 1) / (u_c + B_MAX))
+    sb = f32((TABLE_B - 1) / B_MAX)
+    bmax, top = f32(B_MAX), f32(TABLE_U - 1.000001)
     for e in range(rows * ROW):
-        dx = dx0 + (e & (ROW - 1))
-        dy = dy0 + (e >> ROW_SHIFT)
+        dx = x0 + f32(e & (ROW - 1))
+        dy = y0 + f32(e >> ROW_SHIFT)
         r2 = dx * dx + dy * dy
-        centre = r2 <= 0.0
-        q2 = c11 if centre else c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy
-        p = w11 if centre else w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy
-        r2 = 1.0 if centre else r2
+        centre = r2 <= f32(0.0)
+        q2 = a11 if centre else a11 * dx * dx + f32(2.0) * a12 * dx * dy + a22 * dy * dy
+        p = v11 if centre else v11 * dx * dx + f32(2.0) * v12 * dx * dy + v22 * dy * dy
+        r2 = f32(1.0) if centre else r2
         rr = math.sqrt(r2)
         s_gauss = math.sqrt(q2) / rr
         s_edge = math.sqrt(r2 / p)
-        s = s_gauss + mix * (s_edge - s_gauss)
-        rr = 0.0 if centre else rr
-        k, tb, tu = table_index((rr - rad) * s, rad * s, u_c)
-        cell[e] = k
-        frac[0, e] = tb
-        frac[1, e] = tu
+        s = s_gauss + m * (s_edge - s_gauss)
+        rr = f32(0.0) if centre else rr
+        u = (rr - rad) * s
+        b = rad * s
+        fu = min(max((u + bmax) * su, f32(0.0)), top)
+        fb = min(b, bmax) * sb
+        ib = min(np.int32(fb), TABLE_B - 2)
+        iu = np.int32(fu)
+        cell[e] = -1 if u >= uc else ib * TABLE_U + iu
+        frac[0, e] = fb - f32(ib)
+        frac[1, e] = fu - f32(iu)
 
 
 @shared
