@@ -221,6 +221,32 @@ def test_simd_rows_equal_the_scalar_kernel():
                               flat) > 0.9
 
 
+def test_simd_rows_stay_inside_the_table():
+    """aperture_rows' float32 cells at the support's edge: a pixel whose u lies a float32
+    ulp below u_c once rounded to the table's last column (a cell that reads the next
+    row, and past the table's end from its last row). Walks the pixel down from R + u_c
+    one ulp at a time, at b = R s near B_MAX (the last row); every cell must leave room
+    for its bilinear neighbours and its fractions lie in [0, 1]."""
+    from dofsplat.splat.bokeh import ROW, TABLE_B, TABLE_U, aperture_rows
+
+    u_c = math.sqrt(2 * CUTOFF)
+    radius = 7.95  # W = I: s = 1, b = R
+    cell = np.empty(ROW * ROW, np.int32)
+    frac = np.empty((2, ROW * ROW), np.float32)
+    x = np.float32(radius + u_c)
+    inside = 0
+    for _ in range(4000):
+        aperture_rows(cell, frac, 1, float(x), 0.0, radius, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0,
+                      0.5, u_c)
+        k = cell[:ROW][cell[:ROW] >= 0]
+        inside += k.size
+        assert np.all(k % TABLE_U <= TABLE_U - 2)
+        assert np.all(k + TABLE_U + 1 < TABLE_B * TABLE_U)
+        assert np.all((frac[:, :ROW] >= 0) & (frac[:, :ROW] <= 1))
+        x = np.nextafter(x, np.float32(0))
+    assert inside >= 3999  # the walk's pixel is inside the support (but maybe at its start)
+
+
 @pytest.mark.parametrize("blades", [0, 6])
 def test_a_blurred_plane_still_sums_to_one(blades):
     """Partition of unity under the aperture's kernels: a square of surfels far out of focus

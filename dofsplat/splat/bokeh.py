@@ -235,8 +235,8 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
     lanes outside a row's span cost less than a scalar loop over the span
     (bench/RESULTS.md). The centre (x = 0) takes the scales along x (``aperture_value``)."""
     # in float32, the table's cell too (table_index's steps): twice the SIMD lanes of
-    # float64, and frames equal to ~1e-7 (bench/RESULTS.md). A conversion to float64 on
-    # the way, or a float64 frac, costs all of that back.
+    # float64, and frames equal to ~1e-7 (bench/RESULTS.md). Calling table_index, with its
+    # conversion to float64 on the way, cost all of that back.
     f32 = np.float32
     rad = f32(abs(radius))  # a disc is its own image turned by 180 degrees
     x0, y0 = f32(dx0), f32(dy0)
@@ -245,7 +245,7 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
     m, uc = f32(mix), f32(u_c)
     su = f32((TABLE_U - 1) / (u_c + B_MAX))
     sb = f32((TABLE_B - 1) / B_MAX)
-    bmax, top = f32(B_MAX), f32(TABLE_U - 1.000001)
+    bmax, top = f32(B_MAX), f32(TABLE_U - 1)
     for e in range(rows * ROW):
         dx = x0 + f32(e & (ROW - 1))
         dy = y0 + f32(e >> ROW_SHIFT)
@@ -264,7 +264,9 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
         fu = min(max((u + bmax) * su, f32(0.0)), top)
         fb = min(b, bmax) * sb
         ib = min(np.int32(fb), TABLE_B - 2)
-        iu = np.int32(fu)
+        # clamped as ib is: float32 rounds table_cell's TABLE_U - 1.000001 up to the last
+        # column, whose cell would read the next row (past the table's end from the last)
+        iu = min(np.int32(fu), TABLE_U - 2)
         cell[e] = -1 if u >= uc else ib * TABLE_U + iu
         frac[0, e] = fb - f32(ib)
         frac[1, e] = fu - f32(iu)
