@@ -1,7 +1,7 @@
 """A peer: how many samples, and how long, a path tracer needs for our frame's quality (issue 15).
 
     pip install mitsuba          # not a dependency of dofsplat, and not run in CI
-    python bench/peer_mitsuba.py [--aperture 0.1] [--converged 4096]
+    python bench/peer_mitsuba.py [--aperture 0.1] [--converged 4096] [--filter ewa|gaussian|box]
 
 The scene is the paper's textured plane (``dofsplat.demo.plane_scene``: 4 x 4 units seen at
 a grazing angle, 512 x 512, focused mid-plane), made emissive so that neither renderer
@@ -10,6 +10,16 @@ surfels carry, 512 x 512 texels read bilinearly, and a black BSDF): what remains
 depth of field itself. Mitsuba 3
 renders it through its ``thinlens`` sensor (the same eye, target, field of view, lens radius
 and focus distance) with the CPU variant ``llvm_ad_rgb`` at 1, 2, 4, ... samples per pixel.
+
+The pixel's filter (``--filter``). Ours is the paper's: every splat is convolved with a
+Gaussian of variance 1 px² (Section 6's prefilter I) and the image is read at the pixel
+centres. Mitsuba's box filter integrates a pixel's square instead, a sharper image: against
+it, our frame and our own converged reference both stop near 37 dB, whatever the depth of
+field. ``--filter ewa`` (the default) asks Mitsuba for our image: its box-filtered samples
+are blurred by a Gaussian of variance 1 - 1/12 px² (with the box's 1/12, the prefilter's
+variance), the blur counted in its time. ``--filter gaussian`` asks for the same image
+through Mitsuba's own ``gaussian`` film filter (stddev 1 px), a slower way to it
+(bench/RESULTS.md). ``--filter box`` compares with Mitsuba's box filter as it is.
 
 Both are measured against Mitsuba's converged image (``--converged`` samples per pixel):
 our default frame (LOD, the aperture's disc), and Mitsuba at each sample count. The script
@@ -63,7 +73,7 @@ def ours(aperture: float, samples: int):
     return image, ref, statistics.median(runs), camera, lens
 
 
-def mitsuba_scene(camera, lens, spp: int):
+def mitsuba_scene(camera, lens, spp: int, rfilter: str = "box"):
     import mitsuba as mi
 
     # the texture our surfels carry (textured_plane: 512 x 512 samples of plane_texture,
@@ -86,7 +96,9 @@ def mitsuba_scene(camera, lens, spp: int):
                                                      target=list(camera.target),
                                                      up=list(camera.up)),
             "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                     "rfilter": ({"type": "gaussian", "stddev": 1.0} if rfilter == "gaussian"
+                                 else {"type": "box"}),
+                     "pixel_format": "rgb"},
             "sampler": {"type": "independent", "sample_count": spp},
         },
         "plane": {"type": "rectangle", "to_world": plane,
@@ -97,16 +109,31 @@ def mitsuba_scene(camera, lens, spp: int):
     })
 
 
-def mitsuba_render(camera, lens, spp: int, repeat: int = 3):
-    """(image (H, W, 3) linear, median seconds) at spp samples per pixel."""
+# the blur that turns the box filter's image into the paper's: a Gaussian of variance 1 px²
+# in all, less the box's own 1/12
+EWA_BLUR_SIGMA = (1.0 - 1.0 / 12.0) ** 0.5
+
+
+def ewa_blur(image):
+    """The box-filtered image (H, W, 3) as the paper's prefilter draws it (``--filter ewa``)."""
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(image, (EWA_BLUR_SIGMA, EWA_BLUR_SIGMA, 0.0), mode="nearest")
+
+
+def mitsuba_render(camera, lens, spp: int, repeat: int = 3, pixel_filter: str = "box"):
+    """(image (H, W, 3) linear, median seconds) at spp samples per pixel, with the pixel's
+    filter ``pixel_filter`` (box, ewa or gaussian: the module notes)."""
     import mitsuba as mi
 
-    scene = mitsuba_scene(camera, lens, spp)
+    scene = mitsuba_scene(camera, lens, spp, rfilter=pixel_filter)
     mi.render(scene, spp=spp)  # the JIT
     runs, image = [], None
     for seed in range(repeat):
         t = time.perf_counter()
         image = np.array(mi.render(scene, spp=spp, seed=seed + 1))
+        if pixel_filter == "ewa":
+            image = ewa_blur(image)
         runs.append(time.perf_counter() - t)
     return image, statistics.median(runs)
 
@@ -118,6 +145,9 @@ def main(argv=None) -> int:
     ap.add_argument("--converged", type=int, default=4096,
                     help="Mitsuba's samples per pixel for its converged image")
     ap.add_argument("--max-spp", type=int, default=1024)
+    ap.add_argument("--filter", choices=("ewa", "gaussian", "box"), default="ewa",
+                    help="the pixel's filter both images are held to (module notes; "
+                         "default ewa, the paper's)")
     args = ap.parse_args(argv)
     try:
         import mitsuba as mi
@@ -127,9 +157,10 @@ def main(argv=None) -> int:
         print(f"Mitsuba 3's llvm_ad_rgb variant is not available: {e}", file=sys.stderr)
         return 1
     frame, ref, ms_ours, camera, lens = ours(args.aperture, args.samples)
-    converged, secs = mitsuba_render(camera, lens, args.converged, repeat=1)
-    print(f"Mitsuba {mi.__version__} llvm_ad_rgb: converged image at {args.converged} spp "
-          f"in {secs:.1f} s")
+    converged, secs = mitsuba_render(camera, lens, args.converged, repeat=1,
+                                     pixel_filter=args.filter)
+    print(f"Mitsuba {mi.__version__} llvm_ad_rgb, pixel filter {args.filter}: converged image "
+          f"at {args.converged} spp in {secs:.1f} s")
     rgba = np.concatenate([converged, np.ones(converged.shape[:2] + (1,))], axis=-1)
     psnr_ours = compare(frame, rgba)["psnr"]
     print(f"ours: {psnr_ours:.2f} dB against Mitsuba's converged image, {ms_ours:.0f} ms per "
@@ -139,7 +170,7 @@ def main(argv=None) -> int:
     print("|---:|---:|---:|---:|")
     spp = 1
     while spp <= args.max_spp:
-        image, secs = mitsuba_render(camera, lens, spp)
+        image, secs = mitsuba_render(camera, lens, spp, pixel_filter=args.filter)
         img = np.concatenate([image, np.ones(image.shape[:2] + (1,))], axis=-1)
         psnr = compare(img, rgba)["psnr"]
         print(f"| {spp} | {psnr:.2f} | {secs * 1000:.0f} | {secs * 1000 / ms_ours:.1f} |",
