@@ -23,7 +23,8 @@ through Mitsuba's own ``gaussian`` film filter (stddev 1 px), a slower way to it
 
 Both are measured against Mitsuba's converged image (``--converged`` samples per pixel):
 our default frame (LOD, the aperture's disc), and Mitsuba at each sample count. The script
-finds the first sample count whose PSNR reaches ours, and prints Mitsuba's time there over
+finds the first sample count whose PSNR reaches ours (doubling, then bisecting the last
+step to within an eighth), and prints Mitsuba's time there over
 our frame's time (both medians of 3 runs after a warm-up that includes Mitsuba's JIT
 compilation). Our 200-sample reference against the same image says how far the two
 renderers' scenes agree (the surfels' reconstruction of the texture, the pixel filters).
@@ -168,21 +169,32 @@ def main(argv=None) -> int:
           f"our frame against it: {compare(frame, ref)['psnr']:.2f} dB)")
     print("| spp | PSNR (dB) | time (ms) | Mitsuba time / ours |")
     print("|---:|---:|---:|---:|")
-    spp = 1
-    while spp <= args.max_spp:
+    runs = {}
+
+    def reaches(spp: int) -> bool:
         image, secs = mitsuba_render(camera, lens, spp, pixel_filter=args.filter)
         img = np.concatenate([image, np.ones(image.shape[:2] + (1,))], axis=-1)
         psnr = compare(img, rgba)["psnr"]
+        runs[spp] = secs * 1000.0
         print(f"| {spp} | {psnr:.2f} | {secs * 1000:.0f} | {secs * 1000 / ms_ours:.1f} |",
               flush=True)
-        if psnr >= psnr_ours:
-            print(f"Mitsuba reaches our {psnr_ours:.2f} dB at {spp} spp: "
-                  f"{secs * 1000 / ms_ours:.1f} x our frame's time")
-            return 0
-        spp *= 2
-    print(f"Mitsuba does not reach our {psnr_ours:.2f} dB by {args.max_spp} spp")
-    return 0
+        return psnr >= psnr_ours
 
+    # doubling until Mitsuba reaches our PSNR, then halving the last step until it is an
+    # eighth of the count at most: the samples it needs, to within 1/8
+    spp = 1
+    while not reaches(spp):
+        spp *= 2
+        if spp > args.max_spp:
+            print(f"Mitsuba does not reach our {psnr_ours:.2f} dB by {args.max_spp} spp")
+            return 0
+    lo, hi = spp // 2, spp
+    while hi - lo > max(1, hi // 8):
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if reaches(mid) else (mid, hi)
+    print(f"Mitsuba reaches our {psnr_ours:.2f} dB at {hi} spp: "
+          f"{runs[hi] / ms_ours:.1f} x our frame's time")
+    return 0
 
 if __name__ == "__main__":
     raise SystemExit(main())
