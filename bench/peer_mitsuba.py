@@ -196,5 +196,6 @@ def main(argv=None) -> int:
           f"{runs[hi] / ms_ours:.1f} x our frame's time")
     return 0
 
+
 if __name__ == "__main__":
     raise SystemExit(main())
