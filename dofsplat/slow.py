@@ -367,38 +367,53 @@ def merge_fraction_reference(d_front, d_back, opacity_front, merge):
     return (1 - (3 * t * t - 2 * t ** 3)) * opaque
 
 
-def front_reference(splats, visible, width, height):
-    """(H * W, 3): per pixel the least depth and z_hi of the opaque unblurred disks on it,
-    and the nearest one's z_hi + MERGE_REACH |g| (C_r + 1) (abuffer.front_fragments)."""
-    from .raster.abuffer import FRONT_CUTOFF, MERGE_REACH, OPAQUE
+def front_reference(splats, visible, width, height, margin=None):
+    """((H + 2 margin) * (W + 2 margin), 3): per pixel of the image and ``margin`` pixels
+    round it (default abuffer.FRONT_MARGIN; map pixel (i, j) is the image's (i - margin,
+    j - margin)) the least depth and z_hi of the opaque unblurred disks on it, and the
+    nearest one's z_hi + MERGE_REACH |g| (C_r + 1) (abuffer.front_fragments)."""
+    from .raster.abuffer import FRONT_CUTOFF, FRONT_MARGIN, MERGE_REACH, OPAQUE
     from .splat.project import ALPHA, COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZHI
 
-    front = np.full((height, width, 3), np.inf)
-    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    margin = FRONT_MARGIN if margin is None else margin
+    fw, fh = width + 2 * margin, height + 2 * margin
+    front = np.full((fh, fw, 3), np.inf)
     for k in np.flatnonzero(visible):
         s = splats[k]
-        if s[ALPHA] < OPAQUE:
+        if s[ALPHA] < OPAQUE or not np.all(np.isfinite(s[[MX, MY]])):
             continue
-        Fi = np.array([[s[F11], s[F12]], [s[F12], s[F22]]])
-        d = np.stack([xs - s[MX], ys - s[MY]], axis=-1)
+        Fi = np.array([[s[F11], s[F12]], [s[F12], s[F22]]])  # the conic: F's inverse
+        # the disk lies within sqrt(2 c / lambda_min(F^-1)) of its centre: its map pixels
+        r = math.sqrt(2 * FRONT_CUTOFF / np.linalg.eigvalsh(Fi).min()) + 1
+        cx, cy = s[MX] + margin, s[MY] + margin
+        x0, x1 = max(int(cx - r), 0), min(int(cx + r) + 1, fw)
+        y0, y1 = max(int(cy - r), 0), min(int(cy + r) + 1, fh)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        ys, xs = np.mgrid[y0:y1, x0:x1] + 0.5
+        d = np.stack([xs - cx, ys - cy], axis=-1)
         inside = 0.5 * np.einsum("...i,ij,...j->...", d, Fi, d) < FRONT_CUTOFF
         reach = s[ZHI] + MERGE_REACH * math.hypot(s[GZX], s[GZY]) * (s[COC] + 1)
-        nearer = inside & (s[DEPTH] < front[..., 0])
-        front[..., 2] = np.where(nearer, reach, front[..., 2])
-        front[..., 0] = np.where(nearer, s[DEPTH], front[..., 0])
-        front[..., 1] = np.where(inside, np.minimum(front[..., 1], s[ZHI]), front[..., 1])
+        f = front[y0:y1, x0:x1]
+        nearer = inside & (s[DEPTH] < f[..., 0])
+        f[..., 2] = np.where(nearer, reach, f[..., 2])
+        f[..., 0] = np.where(nearer, s[DEPTH], f[..., 0])
+        f[..., 1] = np.where(inside, np.minimum(f[..., 1], s[ZHI]), f[..., 1])
     return front.reshape(-1, 3)
 
 
-def visibility_reference(s, front, merge, width):
+def visibility_reference(s, front, merge, width, margin=None):
     """A splat's visibility (abuffer.splat_visibility): 9 points of its unblurred disk, then,
-    if it is hidden at all of them, 4 looks through the lens from each."""
-    from .raster.abuffer import (HIDDEN_H0, LENS_MARGIN, LENS_POINTS, LENS_RING, MERGE_REACH,
-                                 VIS_SAMPLES)
+    if it is hidden at all of them, 4 looks through the lens from each; front: the image's
+    front map and ``margin`` pixels round it (``front_reference``), width the image's."""
+    from .raster.abuffer import (FRONT_MARGIN, HIDDEN_H0, LENS_MARGIN, LENS_POINTS, LENS_RING,
+                                 MERGE_REACH, VIS_SAMPLES)
     from .splat.project import COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZLO
 
     s = np.asarray(s, np.float64)  # as the kernel reads a float32 row: in float64
-    height = front.shape[0] // width
+    margin = FRONT_MARGIN if margin is None else margin
+    fw = width + 2 * margin
+    height = front.shape[0] // fw - 2 * margin
     F = np.linalg.inv(np.array([[s[F11], s[F12]], [s[F12], s[F22]]]))
     L = np.linalg.cholesky(F)
     angles = np.arange(VIS_SAMPLES - 1) * 2 * math.pi / (VIS_SAMPLES - 1)
@@ -407,12 +422,20 @@ def visibility_reference(s, front, merge, width):
     zlo = s[ZLO] - 0.75 * np.linalg.norm(g)
     m = np.array([s[MX], s[MY]])
 
+    def index(c):
+        return (math.floor(c[1]) + margin) * fw + math.floor(c[0]) + margin
+
     def pixel(x):
-        """The pixel where the front is read for point x, and the shift to it: beyond the
-        image's edge the front goes on as it is at the centre of the nearest edge pixel."""
+        """The map's pixel where the front is read for point x, and the shift to it: the
+        point's own, in the image or where a disk covers the margin; else the front goes
+        on as it is at the centre of the nearest edge pixel of the image."""
+        inside = 0 <= x[0] < width and 0 <= x[1] < height
+        in_map = -margin <= x[0] < width + margin and -margin <= x[1] < height + margin
+        if inside or (in_map and front[index(x), 0] < np.inf):
+            return index(x), np.zeros(2)
         c = np.array([0.5 if x[0] < 0 else width - 0.5 if x[0] >= width else x[0],
                       0.5 if x[1] < 0 else height - 0.5 if x[1] >= height else x[1]])
-        return math.floor(c[1]) * width + math.floor(c[0]), c - x
+        return index(c), c - x
 
     if not np.all(np.isfinite(m)):
         return 1.0

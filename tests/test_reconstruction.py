@@ -151,6 +151,38 @@ def test_a_surface_hidden_from_the_whole_lens_does_not_merge():
     assert psnr(img, ref) > 23.0
 
 
+@pytest.mark.parametrize("lod", [False, True])
+def test_a_front_that_ends_beyond_the_frame_reveals_what_it_hides(lod):
+    """The front map reaches FRONT_MARGIN pixels beyond the image (``abuffer.front_read``):
+    where a surface ends just outside the frame, the surface behind it, whose blur reaches
+    in, shows through the front's blurred edge as it does in a wider frame. The fidelity
+    suite's two crossing planes at 96 x 96, the largest CoC 7.5 px (its 40 px at 512): the
+    textured plane's near edge lies a few pixels below the frame. The frame against the
+    middle of a frame 24 px wider each way at the same pixel scale: 52.9 dB (no LOD) and
+    53.5 dB (LOD) measured, where a front map of the image alone, taken to go on as it is
+    at the edge, gave 37.6 and 34.4 dB (the rear plane removed along the bottom: alpha
+    0.86 in the last row, 0.92 in the wider frame). What remains is where the crossing line
+    leaves the frame on the right: the wider frame's margin holds disks of splats whose
+    blur does not reach the narrow frame, so it never projects them. The bound, 47 dB,
+    sits between the two."""
+    import dataclasses
+    import math
+
+    from dofsplat.demo import intersecting_planes_scene
+    from dofsplat.metrics import psnr
+
+    n, m = 96, 24
+    surfels, cam, lens = intersecting_planes_scene(n, n)
+    lens = dataclasses.replace(lens, aperture=0.4029)  # bench/fidelity.py's, for 40 px
+    half = math.tan(math.radians(cam.fov_y) / 2) * (n + 2 * m) / n
+    wide = dataclasses.replace(cam, width=n + 2 * m, height=n + 2 * m,
+                               fov_y=2 * math.degrees(math.atan(half)))
+    st = ds.RenderSettings(lod=lod)
+    img = ds.render(surfels, cam, lens, st).image
+    crop = ds.render(surfels, wide, lens, st).image[m:m + n, m:m + n]
+    assert psnr(img, crop) > 47.0
+
+
 def test_visibility_equals_its_slow_twin():
     """``abuffer.splat_visibility`` (its sample points and looks through the lens read from
     tables) against ``slow.visibility_reference`` (their angles' sines and cosines), every
@@ -161,10 +193,10 @@ def test_visibility_equals_its_slow_twin():
     in part."""
     import dataclasses
 
-    from dofsplat.backends.cpu import front_chunk, project, shade_surfels
+    from dofsplat.backends.cpu import front_chunk, front_map, project, shade_surfels
     from dofsplat.demo import intersecting_planes_scene
     from dofsplat.frame import merge_parameters
-    from dofsplat.raster.abuffer import FRONT_FIELDS, splat_visibility
+    from dofsplat.raster.abuffer import FRONT_MARGIN, splat_visibility
     from dofsplat.slow import visibility_reference
 
     surfels, cam, lens = intersecting_planes_scene(96, 96)
@@ -173,12 +205,13 @@ def test_visibility_equals_its_slow_twin():
     splats, bbox, visible = project(surfels, shade_surfels(surfels, cam, st), cam, lens, st)
     # the front map drawn by the fast pass (``front_reference`` is its twin in the frames of
     # tests/test_render.py; over these 400,000 splats it takes a minute)
-    front = np.full((cam.width * cam.height, FRONT_FIELDS), np.inf, np.float32)
-    front_chunk(splats, bbox, visible, cam, front)
+    m = FRONT_MARGIN
+    front = front_map(cam, m)
+    front_chunk(splats, bbox, visible, cam, front, m)
     merge = merge_parameters(cam, lens, st)
     ks = np.flatnonzero(visible)[::50]
-    fast = np.array([splat_visibility(splats, k, front, cam.width, cam.height, *merge)
-                     for k in ks])
+    fast = np.array([splat_visibility(splats, k, front, cam.width + 2 * m, cam.height + 2 * m,
+                                      m, *merge) for k in ks])
     slow = np.array([visibility_reference(splats[k], front, merge, cam.width) for k in ks])
     np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-6)
     assert (fast == 1).sum() > 100 and (fast == 0).sum() > 100, (fast == 0).sum()

@@ -150,6 +150,7 @@ def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: R
     (``front_chunk``), in cut order as the one-buffer frame draws them. Adds to
     clock["select_ms"], ["project_ms"] and ["front_ms"]."""
     from ..lod import gather_cut
+    from ..raster.abuffer import FRONT_MARGIN
 
     boxes = replace(settings, exact_normalization=False)
     n, chunk = cut[0].size, rows.shape[0]
@@ -165,7 +166,7 @@ def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: R
         del source
         if front is not None:
             t = time.perf_counter()
-            front_chunk(*out, camera, front)
+            front_chunk(*out, camera, front, FRONT_MARGIN)
             clock["front_ms"] += _ms(t)
 
 
@@ -184,7 +185,7 @@ def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
     is drawn in cut order as the one-buffer frame's is, so the frame is ``draw_cut``'s bit
     for bit. It costs a second gather and projection of the cut, one more per band
     boundary a splat spans, and a raster pass per band (bench/RESULTS.md)."""
-    from ..raster.abuffer import FRONT_FIELDS, TILE
+    from ..raster.abuffer import FRONT_MARGIN, TILE
     from ..splat.project import N_FIELDS
 
     n = cut[0].size
@@ -195,7 +196,7 @@ def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
     merge = merge_parameters(camera, lens, settings)
     front = None
     if front_pass(merge, settings):
-        front = np.full((camera.height * camera.width, FRONT_FIELDS), np.inf, np.float32)
+        front = front_map(camera, FRONT_MARGIN)
     project_boxes(surfels, tree, cut, camera, lens, settings, rows, bbox, visible, front, clock)
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings, max_splats=budget)
@@ -406,8 +407,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     then None, and the time it takes is not counted here); front: the front map, drawn
     already (``draw_cut_banded``), else it is drawn here when the front pass runs.
     """
-    from ..raster.abuffer import (FRONT_FIELDS, TILE, apply_visibility, bin_splats,
-                                 front_band, rasterize_band)
+    from ..raster.abuffer import (FRONT_MARGIN, TILE, apply_visibility, bin_splats,
+                                 rasterize_band)
 
     w, h = camera.width, camera.height
     n_tx = -(-w // TILE)
@@ -420,29 +421,26 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     u_c = math.sqrt(2.0 * settings.cutoff)
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0
-    binned = {}
 
     if rows is not None and front is None and front_pass(merge, settings):
         raise ValueError("rasterize: bands projected afresh need their front map drawn first")
+    margin = FRONT_MARGIN
+    fw, fh = w + 2 * margin, h + 2 * margin
     if front is None and front_pass(merge, settings):
         t = time.perf_counter()
-        front = np.full((h * w, FRONT_FIELDS), np.inf, np.float32)
-        for ty0, ty1 in bands:
-            offsets, ids = bin_splats(bbox, visible, TILE, n_tx, ty0, ty1)
-            if len(bands) == 1:
-                binned[ty0] = offsets, ids  # one band: bin once for both passes
-            front_band(splats, bbox, offsets, ids, n_tx, ty0, w, h, front)
-        apply_visibility(splats, visible, front, w, h, coc_k, inv_focus, rho0, rho1)
+        front = front_map(camera, margin)
+        front_chunk(splats, bbox, visible, camera, front, margin)
+        apply_visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
         front_ms = _ms(t)
     for ty0, ty1 in bands:
         sp, bb, vis = (splats, bbox, visible) if rows is None else rows(ty0, ty1)
         if rows is not None and front is not None:
             # each band's rows are new: the visibility of its splats, from the whole front
             t = time.perf_counter()
-            apply_visibility(sp, vis, front, w, h, coc_k, inv_focus, rho0, rho1)
+            apply_visibility(sp, vis, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
             front_ms += _ms(t)
         t = time.perf_counter()
-        offsets, ids = binned.pop(ty0, None) or bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
+        offsets, ids = bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
         bin_ms += _ms(t)
         t = time.perf_counter()
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
@@ -459,16 +457,30 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     return image, depth, weight, stats
 
 
-def front_chunk(splats, bbox, visible, camera: Camera, front) -> None:
-    """The front pass's opaque disks of some splats into ``front`` (``rasterize``), binned
-    over the whole image; called on the chunks of a cut in its order, it draws the map
-    ``rasterize`` draws from the whole cut."""
-    from ..raster.abuffer import TILE, bin_splats, front_band
+def front_map(camera: Camera, margin: int):
+    """An empty front map (``abuffer.front_fragments``): the image and ``margin`` pixels
+    round it, ((H + 2 margin) * (W + 2 margin), FRONT_FIELDS) float32 of inf."""
+    from ..raster.abuffer import FRONT_FIELDS
 
-    n_tx = -(-camera.width // TILE)
-    n_ty = -(-camera.height // TILE)
-    offsets, ids = bin_splats(bbox, visible, TILE, n_tx, 0, n_ty)
-    front_band(splats, bbox, offsets, ids, n_tx, 0, camera.width, camera.height, front)
+    fw, fh = camera.width + 2 * margin, camera.height + 2 * margin
+    return np.full((fh * fw, FRONT_FIELDS), np.inf, np.float32)
+
+
+def front_chunk(splats, bbox, visible, camera: Camera, front, margin: int) -> None:
+    """The front pass's opaque unblurred disks of some splats into ``front`` (``front_map``
+    of that margin), binned by their own boxes over the whole map; called on the chunks of
+    a cut in its order, it draws the map the whole cut draws at once. (bbox is unused: the
+    disks have boxes of their own, ``abuffer.front_boxes``.)"""
+    from ..raster.abuffer import TILE, bin_splats, front_band, front_boxes
+
+    fw, fh = camera.width + 2 * margin, camera.height + 2 * margin
+    n = splats.shape[0]
+    box = np.empty((n, 4), np.int32)
+    use = np.empty(n, np.bool_)
+    front_boxes(splats, visible, fw, fh, margin, box, use)
+    n_tx = -(-fw // TILE)
+    offsets, ids = bin_splats(box, use, TILE, n_tx, 0, -(-fh // TILE))
+    front_band(splats, offsets, ids, n_tx, fw, fh, margin, front)
 
 
 # -- helpers -----------------------------------------------------------------------------

@@ -48,9 +48,9 @@ import numpy as np
 from numba import cuda
 
 from ..lod.select import DESCEND, SELECT, gather_gradient, gather_splat, visit_node
-from ..raster.abuffer import (FRONT_FIELDS, MAX_SURFACES, N_ACC, RESOLVE_SCRATCH, TILE,
-                              front_fragments, insert_fragment, resolve_to_image,
-                              splat_visibility)
+from ..raster.abuffer import (FRONT_FIELDS, FRONT_MARGIN, MAX_SURFACES, N_ACC, OPAQUE,
+                              RESOLVE_SCRATCH, TILE, front_disk_box, front_fragments,
+                              insert_fragment, resolve_to_image, splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
@@ -98,6 +98,7 @@ _gather_gradient = device_twin(gather_gradient)
 _insert_fragment = device_twin(insert_fragment)
 _resolve_to_image = device_twin(resolve_to_image)
 _front_fragments = device_twin(front_fragments)
+_front_disk_box = device_twin(front_disk_box)
 _splat_visibility = device_twin(splat_visibility)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
@@ -272,25 +273,39 @@ def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, vi
 
 
 @cuda.jit
-def _front(splats, offsets, ids, n_tx, width, height, opaque, front):
-    """The front pass (raster/abuffer.py's front_band): one thread per tile, serial inside."""
-    t = cuda.grid(1)
-    if t < offsets.shape[0] - 1:
-        px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
-        px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
-        for e in range(offsets[t], offsets[t + 1]):
-            k = ids[e]
-            if splats[k, ALPHA] >= opaque:
-                _front_fragments(splats, k, px0, px1, py0, py1, front, width)
+def _front_boxes(splats, visible, fw, fh, margin, box, use):
+    """The front map's disk boxes (raster/abuffer.py's front_boxes): one thread per splat."""
+    k = cuda.grid(1)
+    if k < splats.shape[0]:
+        use[k] = False
+        if visible[k] and splats[k, ALPHA] >= OPAQUE and math.isfinite(splats[k, MX]) \
+                and math.isfinite(splats[k, MY]):
+            x0, x1, y0, y1 = _front_disk_box(splats, k, margin)
+            x0, x1, y0, y1 = max(x0, 0), min(x1, fw - 1), max(y0, 0), min(y1, fh - 1)
+            if x0 <= x1 and y0 <= y1:
+                box[k, 0], box[k, 1], box[k, 2], box[k, 3] = x0, x1, y0, y1
+                use[k] = True
 
 
 @cuda.jit
-def _visibility(splats, visible, front, width, height, coc_k, inv_focus, rho0, rho1):
+def _front(splats, offsets, ids, n_tx, fw, fh, margin, front):
+    """The front pass (raster/abuffer.py's front_band): one thread per tile of the front
+    map, serial inside."""
+    t = cuda.grid(1)
+    if t < offsets.shape[0] - 1:
+        px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
+        px1, py1 = min(px0 + TILE, fw) - 1, min(py0 + TILE, fh) - 1
+        for e in range(offsets[t], offsets[t + 1]):
+            _front_fragments(splats, ids[e], px0, px1, py0, py1, front, fw, margin)
+
+
+@cuda.jit
+def _visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1):
     """Each splat's share that survives the front pass (abuffer.apply_visibility)."""
     k = cuda.grid(1)
     if k < splats.shape[0] and visible[k]:
-        splats[k, AMP] *= _splat_visibility(splats, k, front, width, height, coc_k, inv_focus,
-                                            rho0, rho1)
+        splats[k, AMP] *= _splat_visibility(splats, k, front, fw, fh, margin, coc_k,
+                                            inv_focus, rho0, rho1)
 
 
 @cuda.jit
@@ -693,31 +708,33 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
     return splats, bbox, visible
 
 
-def bin_cuda(bbox, visible, camera):
+def bin_cuda(bbox, visible, camera, prefix="bin"):
     """Tile lists on the GPU: (offsets (T + 1,) int64, ids (P,) int32, visible splats).
 
     The splats of tile t = ty * n_tx + tx are ids[offsets[t]:offsets[t + 1]] in increasing
-    splat index, as raster.abuffer.bin_splats gives them for the whole image.
+    splat index, as raster.abuffer.bin_splats gives them for the whole image. camera: any
+    object with width and height (the front map's, ``rasterize_cuda``); prefix names the
+    buffers, so that two tile lists can live at once.
     """
     n = visible.shape[0]
     n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
     n_tiles = n_tx * n_ty
-    counts = _WS.get("bin.counts", (n_tiles,), np.int64)
+    counts = _WS.get(f"{prefix}.counts", (n_tiles,), np.int64)
     _fill[_blocks(n_tiles), THREADS](counts, 0)
-    n_visible = _WS.get("bin.n_visible", (1,), np.int64)
+    n_visible = _WS.get(f"{prefix}.n_visible", (1,), np.int64)
     _fill[1, 1](n_visible, 0)
     if n:
         _count_pairs[_blocks(n), THREADS](bbox, visible, n_tx, counts, n_visible)
-    offsets = _WS.get("bin.offsets", (n_tiles + 1,), np.int64)
-    exclusive_scan(counts, n_tiles, offsets, "bin.scan")
+    offsets = _WS.get(f"{prefix}.offsets", (n_tiles + 1,), np.int64)
+    exclusive_scan(counts, n_tiles, offsets, f"{prefix}.scan")
     n_pairs = _scalar(offsets, n_tiles)
     if n_pairs >= 2**31:
         from ..errors import DofsplatError
 
         raise DofsplatError(f"{n_pairs} tile-splat pairs exceed the CUDA backend's int32 lists")
-    ids = _WS.get("bin.ids", (n_pairs,), np.int32)
+    ids = _WS.get(f"{prefix}.ids", (n_pairs,), np.int32)
     if n_pairs:
-        cursor = _WS.get("bin.cursor", (n_tiles,), np.int64)
+        cursor = _WS.get(f"{prefix}.cursor", (n_tiles,), np.int64)
         cursor.copy_to_device(offsets[:n_tiles])
         _fill_pairs[_blocks(n), THREADS](bbox, visible, n_tx, cursor, ids)
         _sort_tiles[n_tiles, THREADS](offsets, ids)
@@ -731,21 +748,28 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge,
     ``frame.front_pass``) the front pass and the splats' visibility come first, as in
     ``backends.cpu.rasterize``.
     """
-    from ..raster.abuffer import OPAQUE
     from ..frame import aperture_shape, front_pass
 
     _, blades, table, _ = aperture_shape(lens, settings)
 
     w, h = camera.width, camera.height
     coc_k, inv_focus, rho0, rho1 = (float(x) for x in merge)
-    n_tx0 = -(-w // TILE)
     if front_pass(merge, settings) and splats.shape[0]:
-        front = _WS.get("front", (h * w, FRONT_FIELDS), np.float32)
-        front.copy_to_device(np.full((h * w, FRONT_FIELDS), np.inf, np.float32))
-        n_tiles = offsets.shape[0] - 1
-        _front[_blocks(n_tiles), THREADS](splats, offsets, ids, n_tx0, w, h, OPAQUE, front)
-        _visibility[_blocks(splats.shape[0]), THREADS](splats, visible, front, w, h, coc_k,
-                                                       inv_focus, rho0, rho1)
+        m = FRONT_MARGIN
+        fw, fh = w + 2 * m, h + 2 * m
+        front = _WS.get("front", (fh * fw, FRONT_FIELDS), np.float32)
+        front.copy_to_device(np.full((fh * fw, FRONT_FIELDS), np.inf, np.float32))
+        n = splats.shape[0]
+        box = _WS.get("front.box", (n, 4), np.int32)
+        use = _WS.get("front.use", (n,), np.bool_)
+        _front_boxes[_blocks(n), THREADS](splats, visible, fw, fh, m, box, use)
+        f_offsets, f_ids, _ = bin_cuda(box, use, types.SimpleNamespace(width=fw, height=fh),
+                                       "front.bin")
+        n_tiles = f_offsets.shape[0] - 1
+        _front[_blocks(n_tiles), THREADS](splats, f_offsets, f_ids, -(-fw // TILE), fw, fh, m,
+                                          front)
+        _visibility[_blocks(n), THREADS](splats, visible, front, fw, fh, m, coc_k, inv_focus,
+                                         rho0, rho1)
     n_tx, n_ty = -(-w // TILE), -(-h // TILE)
     image = _WS.get("image", (h, w, 4), np.float32)
     depth = _WS.get("depth", (h, w), np.float32)

@@ -45,6 +45,10 @@ RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
 OPAQUE = 0.95
 FRONT_CUTOFF = 2.0
 FRONT_FIELDS = 3  # the front map's floats per pixel (front_fragments)
+# ... over the image and this many pixels round it: the disks of splats just beyond the
+# image's edge, whose blur reaches into it, hide or reveal what lies behind them there
+# (``front_read``; docs/maths.md, "Beyond the image's edge")
+FRONT_MARGIN = 128
 # A sharp opaque surface's weights sum to 1 only on average: the sum of its splats' kernels
 # ripples by a few per cent between them (down to 0.92 over the magnified floor of the
 # fidelity suite's pinhole frames), and min(1, w) would let what lies behind show through
@@ -284,30 +288,40 @@ def merge_fraction(d_front, d_back, opacity_front, coc_k, inv_focus, rho0, rho1)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def front_fragments(splats, k, px0, px1, py0, py1, front, width):
-    """Splat k's unblurred disk into the front buffer of pixels px0..px1 x py0..py1.
-
-    front: (H * W, FRONT_FIELDS) float32, per pixel the least depth and the least z_hi of
-    the opaque disks covering it, and the nearest disk's z_hi + MERGE_REACH |g| (C_r + 1 px)
-    (how far back the A-buffer's united z-ranges of its blurred fragments reach, g its
-    depth change per pixel).
-    """
-    mx, my = splats[k, MX], splats[k, MY]
+def front_disk_box(splats, k, margin):
+    """The pixel box (x0, x1, y0, y1) of splat k's unblurred disk in the front map, whose
+    pixel (i, j) is the image's (i - margin, j - margin); not clipped."""
+    mx, my = splats[k, MX] + margin, splats[k, MY] + margin
     f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
     det = f11 * f22 - f12 * f12
     hx = math.sqrt(2.0 * FRONT_CUTOFF * f22 / det)  # F = inverse of the conic
     hy = math.sqrt(2.0 * FRONT_CUTOFF * f11 / det)
-    x0 = max(int(math.floor(mx - hx - 0.5)), px0)
-    x1 = min(int(math.ceil(mx + hx - 0.5)), px1)
-    y0 = max(int(math.floor(my - hy - 0.5)), py0)
-    y1 = min(int(math.ceil(my + hy - 0.5)), py1)
+    return (int(math.floor(mx - hx - 0.5)), int(math.ceil(mx + hx - 0.5)),
+            int(math.floor(my - hy - 0.5)), int(math.ceil(my + hy - 0.5)))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def front_fragments(splats, k, px0, px1, py0, py1, front, fw, margin):
+    """Splat k's unblurred disk into the front map's pixels px0..px1 x py0..py1.
+
+    front: (fh * fw, FRONT_FIELDS) float32, the image and ``margin`` pixels round it
+    (``front_map``; map pixel (i, j) is the image's (i - margin, j - margin)): per pixel the
+    least depth and the least z_hi of the opaque disks covering it, and the nearest disk's
+    z_hi + MERGE_REACH |g| (C_r + 1 px) (how far back the A-buffer's united z-ranges of its
+    blurred fragments reach, g its depth change per pixel).
+    """
+    mx, my = splats[k, MX] + margin, splats[k, MY] + margin
+    f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
+    x0, x1, y0, y1 = front_disk_box(splats, k, margin)
+    x0, x1 = max(x0, px0), min(x1, px1)
+    y0, y1 = max(y0, py0), min(y1, py1)
     d, zhi = splats[k, DEPTH], splats[k, ZHI]
     gx, gy = splats[k, GZX], splats[k, GZY]
     reach = zhi + MERGE_REACH * math.sqrt(gx * gx + gy * gy) * (splats[k, COC] + 1.0)
     for i in range(y0, y1 + 1):
         for j in range(x0, x1 + 1):
             if exponent(j + 0.5 - mx, i + 0.5 - my, f11, f12, f22) < FRONT_CUTOFF:
-                p = i * width + j
+                p = i * fw + j
                 if d < front[p, 0]:
                     front[p, 0] = d
                     front[p, 2] = reach
@@ -316,18 +330,30 @@ def front_fragments(splats, k, px0, px1, py0, py1, front, width):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def front_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, front):
-    """The front pass over one band's tiles: opaque unblurred disks into ``front``."""
+def front_boxes(splats, visible, fw, fh, margin, box, use):
+    """The front map's boxes (``front_disk_box``, clipped to the fw x fh map) of the visible
+    opaque splats into box (N, 4) int32, and use (N,): whether splat k draws a disk."""
+    for k in numba.prange(splats.shape[0]):
+        use[k] = False
+        if visible[k] and splats[k, ALPHA] >= OPAQUE and math.isfinite(splats[k, MX]) \
+                and math.isfinite(splats[k, MY]):
+            x0, x1, y0, y1 = front_disk_box(splats, k, margin)
+            x0, x1, y0, y1 = max(x0, 0), min(x1, fw - 1), max(y0, 0), min(y1, fh - 1)
+            if x0 <= x1 and y0 <= y1:
+                box[k, 0], box[k, 1], box[k, 2], box[k, 3] = x0, x1, y0, y1
+                use[k] = True
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def front_band(splats, offsets, ids, n_tx, fw, fh, margin, front):
+    """The front pass over the front map's tiles (``bin_splats`` of ``front_boxes``):
+    opaque unblurred disks into ``front``."""
     n_tiles = offsets.shape[0] - 1
     for t in numba.prange(n_tiles):
-        ty = ty0 + t // n_tx
-        tx = t % n_tx
-        px0, py0 = tx * TILE, ty * TILE
-        px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
+        px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
+        px1, py1 = min(px0 + TILE, fw) - 1, min(py0 + TILE, fh) - 1
         for e in range(offsets[t], offsets[t + 1]):
-            k = ids[e]
-            if splats[k, ALPHA] >= OPAQUE:
-                front_fragments(splats, k, px0, px1, py0, py1, front, width)
+            front_fragments(splats, ids[e], px0, px1, py0, py1, front, fw, margin)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -342,11 +368,21 @@ def disk_point(s, l11, l21, l22):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def edge_clamp(x, y, width, height):
-    """Where the front is read for a point (x, y) of the image plane: the point itself,
-    or beyond the image's edge the centre of the nearest edge pixel (the front is taken to
-    go on as it is there). Returns the pixel (i, j) and the shift (ex, ey) from the point
-    to where it is read, (0, 0) inside the image. (x, y) must be finite."""
+def front_read(x, y, front, fw, fh, margin):
+    """Where the front map is read for a point (x, y) of the image plane: the map's pixel
+    under it, if the map has one there and, beyond the image's edge, a disk covers it; else
+    the centre of the nearest edge pixel of the image (the front is taken to go on as it
+    is there: the margin holds only the disks of splats whose blur reaches into the image).
+    Returns the map's pixel index and the shift (ex, ey) from the point to where it is
+    read, (0, 0) where the point itself is read. (x, y) must be finite."""
+    width, height = fw - 2 * margin, fh - 2 * margin
+    if 0.0 <= x < width and 0.0 <= y < height:
+        return (int(math.floor(y)) + margin) * fw + int(math.floor(x)) + margin, 0.0, 0.0
+    j, i = math.floor(x + margin), math.floor(y + margin)
+    if 0.0 <= j < fw and 0.0 <= i < fh:
+        p = int(i) * fw + int(j)
+        if front[p, 0] < math.inf:
+            return p, 0.0, 0.0
     cx, cy = x, y
     if x < 0.0:
         cx = 0.5
@@ -356,11 +392,11 @@ def edge_clamp(x, y, width, height):
         cy = 0.5
     elif y >= height:
         cy = height - 0.5
-    return int(math.floor(cy)), int(math.floor(cx)), cx - x, cy - y
+    return (int(math.floor(cy)) + margin) * fw + int(math.floor(cx)) + margin, cx - x, cy - y
 
 
 @numba.njit(cache=True, nogil=True)
-def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1):
+def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1):
     """The share of splat k that survives the front pass, in [0, 1] (docs/maths.md).
 
     At each of VIS_SAMPLES points of its unblurred disk (the centre, 8 points on the
@@ -397,8 +433,7 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
         # a point beyond the image's edge (a splat whose blur reaches into the frame) is
         # compared with the front at the edge, its own depth carried there along its
         # tangent plane
-        i, j, ex, ey = edge_clamp(mx + dx, my + dy, width, height)
-        p = i * width + j
+        p, ex, ey = front_read(mx + dx, my + dy, front, fw, fh, margin)
         if zlo + gx * ex + gy * ey > front[p, 1]:
             hidden += 1
             removed += merge_fraction(front[p, 0], depth, 1.0, coc_k, inv_focus, rho0, rho1)
@@ -409,8 +444,8 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     # A-buffer unites the z-ranges of the fragments a blur brings to a pixel, which span a
     # surface's depths over its CoC and, merge after merge, beyond): they would merge with
     # the front's. Behind a front they cannot reach, "over" hides it as it should
-    i, j, ex, ey = edge_clamp(mx, my, width, height)
-    if zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[i * width + j, 2]:
+    p, ex, ey = front_read(mx, my, front, fw, fh, margin)
+    if zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[p, 2]:
         return 1.0 - removed
     # hidden where the pinhole looks: is it hidden from the whole lens? Its own surface,
     # extended along its tangent plane, must not hide it (a convex surface curves away
@@ -419,15 +454,15 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
     seen = 0
     for s in range(VIS_SAMPLES):
         dx, dy = disk_point(s, l11, l21, l22)
-        i, j, ex, ey = edge_clamp(mx + dx, my + dy, width, height)
-        parallax = LENS_RING * coc_k * abs(1.0 / front[i * width + j, 0] - 1.0 / depth) + LENS_MARGIN
+        p, ex, ey = front_read(mx + dx, my + dy, front, fw, fh, margin)
+        parallax = LENS_RING * coc_k * abs(1.0 / front[p, 0] - 1.0 / depth) + LENS_MARGIN
         for l in range(LENS_POINTS):
             ox = parallax * LOOK[s * LENS_POINTS + l, 0]
             oy = parallax * LOOK[s * LENS_POINTS + l, 1]
             # beyond the image's edge the front is taken to go on as it is at the edge
-            i, j, ex, ey = edge_clamp(mx + dx + ox, my + dy + oy, width, height)
+            p, ex, ey = front_read(mx + dx + ox, my + dy + oy, front, fw, fh, margin)
             looks += 1
-            if zlo + gx * (ox + ex) + gy * (oy + ey) <= front[i * width + j, 1]:
+            if zlo + gx * (ox + ex) + gy * (oy + ey) <= front[p, 1]:
                 seen += 1
     h = 1.0 - seen / looks
     t = min(max((h - HIDDEN_H0) / (1.0 - HIDDEN_H0), 0.0), 1.0)
@@ -435,12 +470,13 @@ def splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rh
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def apply_visibility(splats, visible, front, width, height, coc_k, inv_focus, rho0, rho1):
+def apply_visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1):
     """Scale every visible splat's amplitude by its ``splat_visibility`` (0: the rasteriser
     skips it)."""
     for k in numba.prange(splats.shape[0]):
         if visible[k]:
-            v = splat_visibility(splats, k, front, width, height, coc_k, inv_focus, rho0, rho1)
+            v = splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0,
+                                 rho1)
             splats[k, AMP] *= v
 
 
