@@ -376,13 +376,6 @@ def front_read(x, y, front, fw, fh, margin):
     Returns the map's pixel index and the shift (ex, ey) from the point to where it is
     read, (0, 0) where the point itself is read. (x, y) must be finite."""
     width, height = fw - 2 * margin, fh - 2 * margin
-    if 0.0 <= x < width and 0.0 <= y < height:
-        return (int(math.floor(y)) + margin) * fw + int(math.floor(x)) + margin, 0.0, 0.0
-    j, i = math.floor(x + margin), math.floor(y + margin)
-    if 0.0 <= j < fw and 0.0 <= i < fh:
-        p = int(i) * fw + int(j)
-        if front[p, 0] < math.inf:
-            return p, 0.0, 0.0
     cx, cy = x, y
     if x < 0.0:
         cx = 0.5
@@ -392,7 +385,27 @@ def front_read(x, y, front, fw, fh, margin):
         cy = 0.5
     elif y >= height:
         cy = height - 0.5
+    if cx != x or cy != y:  # beyond the image's edge: the margin, where a disk covers it
+        j, i = math.floor(x) + margin, math.floor(y) + margin
+        if 0 <= j < fw and 0 <= i < fh and front[i * fw + j, 0] < math.inf:
+            return i * fw + j, 0.0, 0.0
     return (int(math.floor(cy)) + margin) * fw + int(math.floor(cx)) + margin, cx - x, cy - y
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def front_at(x, y, front, fw, fh, margin, inside):
+    """``front_read`` for a point that ``inside`` says lies within the image (its own pixel,
+    no shift: the common case, without the tests), else ``front_read`` itself."""
+    if inside:
+        return (int(y) + margin) * fw + int(x) + margin, 0.0, 0.0
+    return front_read(x, y, front, fw, fh, margin)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def within(x, y, rx, ry, width, height):
+    """Whether the box x +- rx, y +- ry lies inside the image, half a pixel in from its
+    edge (so that rounding cannot carry a point of it out)."""
+    return x - rx > 0.5 and x + rx < width - 0.5 and y - ry > 0.5 and y + ry < height - 0.5
 
 
 @numba.njit(cache=True, nogil=True)
@@ -426,14 +439,17 @@ def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, r
     gx, gy = splats[k, GZX], splats[k, GZY]
     grad = math.sqrt(gx * gx + gy * gy)
     zlo, depth = splats[k, ZLO] - 0.75 * grad, splats[k, DEPTH]
+    width, height = fw - 2 * margin, fh - 2 * margin
+    # the disk's points lie within sqrt(v11), sqrt(v22) of its centre
+    inside = within(mx, my, math.sqrt(v11), math.sqrt(v22), width, height)
     removed = 0.0
     hidden = 0
     for s in range(VIS_SAMPLES):
         dx, dy = disk_point(s, l11, l21, l22)
-        # a point beyond the image's edge (a splat whose blur reaches into the frame) is
-        # compared with the front at the edge, its own depth carried there along its
-        # tangent plane
-        p, ex, ey = front_read(mx + dx, my + dy, front, fw, fh, margin)
+        # a point beyond the image's edge (a splat whose blur reaches into the frame) reads
+        # the front map's margin, or the front at the edge with its own depth carried there
+        # along its tangent plane
+        p, ex, ey = front_at(mx + dx, my + dy, front, fw, fh, margin, inside)
         if zlo + gx * ex + gy * ey > front[p, 1]:
             hidden += 1
             removed += merge_fraction(front[p, 0], depth, 1.0, coc_k, inv_focus, rho0, rho1)
@@ -444,7 +460,7 @@ def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, r
     # A-buffer unites the z-ranges of the fragments a blur brings to a pixel, which span a
     # surface's depths over its CoC and, merge after merge, beyond): they would merge with
     # the front's. Behind a front they cannot reach, "over" hides it as it should
-    p, ex, ey = front_read(mx, my, front, fw, fh, margin)
+    p, ex, ey = front_at(mx, my, front, fw, fh, margin, inside)
     if zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[p, 2]:
         return 1.0 - removed
     # hidden where the pinhole looks: is it hidden from the whole lens? Its own surface,
@@ -454,13 +470,13 @@ def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, r
     seen = 0
     for s in range(VIS_SAMPLES):
         dx, dy = disk_point(s, l11, l21, l22)
-        p, ex, ey = front_read(mx + dx, my + dy, front, fw, fh, margin)
+        p, ex, ey = front_at(mx + dx, my + dy, front, fw, fh, margin, inside)
         parallax = LENS_RING * coc_k * abs(1.0 / front[p, 0] - 1.0 / depth) + LENS_MARGIN
+        ring_inside = within(mx + dx, my + dy, parallax, parallax, width, height)
         for l in range(LENS_POINTS):
             ox = parallax * LOOK[s * LENS_POINTS + l, 0]
             oy = parallax * LOOK[s * LENS_POINTS + l, 1]
-            # beyond the image's edge the front is taken to go on as it is at the edge
-            p, ex, ey = front_read(mx + dx + ox, my + dy + oy, front, fw, fh, margin)
+            p, ex, ey = front_at(mx + dx + ox, my + dy + oy, front, fw, fh, margin, ring_inside)
             looks += 1
             if zlo + gx * (ox + ex) + gy * (oy + ey) <= front[p, 1]:
                 seen += 1
