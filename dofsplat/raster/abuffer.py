@@ -386,7 +386,7 @@ def front_read(x, y, front, fw, fh, margin):
     elif y >= height:
         cy = height - 0.5
     if cx != x or cy != y:  # beyond the image's edge: the margin, where a disk covers it
-        j, i = math.floor(x) + margin, math.floor(y) + margin
+        j, i = int(math.floor(x)) + margin, int(math.floor(y)) + margin
         if 0 <= j < fw and 0 <= i < fh and front[i * fw + j, 0] < math.inf:
             return i * fw + j, 0.0, 0.0
     return (int(math.floor(cy)) + margin) * fw + int(math.floor(cx)) + margin, cx - x, cy - y
