@@ -202,12 +202,12 @@ def test_visibility_equals_its_slow_twin():
     surfels, cam, lens = intersecting_planes_scene(96, 96)
     lens = dataclasses.replace(lens, aperture=0.8)
     st = ds.RenderSettings(lod=False)
-    splats, bbox, visible = project(surfels, shade_surfels(surfels, cam, st), cam, lens, st)
+    splats, _, visible = project(surfels, shade_surfels(surfels, cam, st), cam, lens, st)
     # the front map drawn by the fast pass (``front_reference`` is its twin in the frames of
     # tests/test_render.py; over these 400,000 splats it takes a minute)
     m = FRONT_MARGIN
     front = front_map(cam, m)
-    front_chunk(splats, bbox, visible, cam, front, m)
+    front_chunk(splats, visible, cam, front, m)
     merge = merge_parameters(cam, lens, st)
     ks = np.flatnonzero(visible)[::50]
     fast = np.array([splat_visibility(splats, k, front, cam.width + 2 * m, cam.height + 2 * m,

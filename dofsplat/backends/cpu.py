@@ -166,7 +166,7 @@ def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: R
         del source
         if front is not None:
             t = time.perf_counter()
-            front_chunk(*out, camera, front, FRONT_MARGIN)
+            front_chunk(out[0], out[2], camera, front, FRONT_MARGIN)
             clock["front_ms"] += _ms(t)
 
 
@@ -429,7 +429,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     if front is None and front_pass(merge, settings):
         t = time.perf_counter()
         front = front_map(camera, margin)
-        front_chunk(splats, bbox, visible, camera, front, margin)
+        front_chunk(splats, visible, camera, front, margin)
         apply_visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
         front_ms = _ms(t)
     for ty0, ty1 in bands:
@@ -466,11 +466,11 @@ def front_map(camera: Camera, margin: int):
     return np.full((fh * fw, FRONT_FIELDS), np.inf, np.float32)
 
 
-def front_chunk(splats, bbox, visible, camera: Camera, front, margin: int) -> None:
+def front_chunk(splats, visible, camera: Camera, front, margin: int) -> None:
     """The front pass's opaque unblurred disks of some splats into ``front`` (``front_map``
-    of that margin), binned by their own boxes over the whole map; called on the chunks of
-    a cut in its order, it draws the map the whole cut draws at once. (bbox is unused: the
-    disks have boxes of their own, ``abuffer.front_boxes``.)"""
+    of that margin), binned by boxes of their own (``abuffer.front_boxes``) over the whole
+    map; called on the chunks of a cut in its order, it draws the map the whole cut draws
+    at once."""
     from ..raster.abuffer import TILE, bin_splats, front_band, front_boxes
 
     fw, fh = camera.width + 2 * margin, camera.height + 2 * margin

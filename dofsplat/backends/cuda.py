@@ -48,8 +48,8 @@ import numpy as np
 from numba import cuda
 
 from ..lod.select import DESCEND, SELECT, gather_gradient, gather_splat, visit_node
-from ..raster.abuffer import (FRONT_FIELDS, FRONT_MARGIN, MAX_SURFACES, N_ACC, OPAQUE,
-                              RESOLVE_SCRATCH, TILE, front_disk_box, front_fragments,
+from ..raster.abuffer import (FRONT_FIELDS, FRONT_MARGIN, MAX_SURFACES, N_ACC,
+                              RESOLVE_SCRATCH, TILE, front_box, front_fragments,
                               insert_fragment, resolve_to_image, splat_visibility)
 from ..splat.ewa import exponent, row_pixel_range
 from ..splat.bokeh import aperture_kernel
@@ -98,7 +98,7 @@ _gather_gradient = device_twin(gather_gradient)
 _insert_fragment = device_twin(insert_fragment)
 _resolve_to_image = device_twin(resolve_to_image)
 _front_fragments = device_twin(front_fragments)
-_front_disk_box = device_twin(front_disk_box)
+_front_box = device_twin(front_box)
 _splat_visibility = device_twin(splat_visibility)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
@@ -277,14 +277,7 @@ def _front_boxes(splats, visible, fw, fh, margin, box, use):
     """The front map's disk boxes (raster/abuffer.py's front_boxes): one thread per splat."""
     k = cuda.grid(1)
     if k < splats.shape[0]:
-        use[k] = False
-        if visible[k] and splats[k, ALPHA] >= OPAQUE and math.isfinite(splats[k, MX]) \
-                and math.isfinite(splats[k, MY]):
-            x0, x1, y0, y1 = _front_disk_box(splats, k, margin)
-            x0, x1, y0, y1 = max(x0, 0), min(x1, fw - 1), max(y0, 0), min(y1, fh - 1)
-            if x0 <= x1 and y0 <= y1:
-                box[k, 0], box[k, 1], box[k, 2], box[k, 3] = x0, x1, y0, y1
-                use[k] = True
+        _front_box(splats, visible, k, fw, fh, margin, box, use)
 
 
 @cuda.jit
@@ -708,16 +701,16 @@ def project_cuda(source: SplatSource, rgb, camera, lens, settings, gain=None):
     return splats, bbox, visible
 
 
-def bin_cuda(bbox, visible, camera, prefix="bin"):
+def bin_cuda(bbox, visible, width, height, prefix="bin"):
     """Tile lists on the GPU: (offsets (T + 1,) int64, ids (P,) int32, visible splats).
 
     The splats of tile t = ty * n_tx + tx are ids[offsets[t]:offsets[t + 1]] in increasing
-    splat index, as raster.abuffer.bin_splats gives them for the whole image. camera: any
-    object with width and height (the front map's, ``rasterize_cuda``); prefix names the
-    buffers, so that two tile lists can live at once.
+    splat index, as raster.abuffer.bin_splats gives them for a width x height image (the
+    frame's, or the front map's in ``rasterize_cuda``); prefix names the buffers, so that
+    two tile lists can live at once.
     """
     n = visible.shape[0]
-    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
+    n_tx, n_ty = -(-width // TILE), -(-height // TILE)
     n_tiles = n_tx * n_ty
     counts = _WS.get(f"{prefix}.counts", (n_tiles,), np.int64)
     _fill[_blocks(n_tiles), THREADS](counts, 0)
@@ -763,8 +756,7 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge,
         box = _WS.get("front.box", (n, 4), np.int32)
         use = _WS.get("front.use", (n,), np.bool_)
         _front_boxes[_blocks(n), THREADS](splats, visible, fw, fh, m, box, use)
-        f_offsets, f_ids, _ = bin_cuda(box, use, types.SimpleNamespace(width=fw, height=fh),
-                                       "front.bin")
+        f_offsets, f_ids, _ = bin_cuda(box, use, fw, fh, "front.bin")
         n_tiles = f_offsets.shape[0] - 1
         _front[_blocks(n_tiles), THREADS](splats, f_offsets, f_ids, -(-fw // TILE), fw, fh, m,
                                           front)
@@ -886,7 +878,7 @@ def _draw(source, rgb, camera, lens, settings, clock, gain=None):
 
     splats, bbox, visible = project_cuda(source, rgb, camera, lens, settings, gain)
     clock.mark("project_ms")
-    offsets, ids, n_visible = bin_cuda(bbox, visible, camera)
+    offsets, ids, n_visible = bin_cuda(bbox, visible, camera.width, camera.height)
     clock.mark("bin_ms")
     merge = merge_parameters(camera, lens, settings)
     image, depth, weight, tile_stats = rasterize_cuda(splats, bbox, visible, offsets, ids, camera,

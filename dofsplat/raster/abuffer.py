@@ -329,19 +329,26 @@ def front_fragments(splats, k, px0, px1, py0, py1, front, fw, margin):
                     front[p, 1] = zhi
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def front_box(splats, visible, k, fw, fh, margin, box, use):
+    """Splat k's box in the front map (``front_disk_box``, clipped to the fw x fh map) into
+    box[k], and use[k]: whether it draws a disk (visible, opaque, at a finite point, on the
+    map). Shared with the CUDA backend, one thread per splat."""
+    use[k] = False
+    if visible[k] and splats[k, ALPHA] >= OPAQUE and math.isfinite(splats[k, MX]) \
+            and math.isfinite(splats[k, MY]):
+        x0, x1, y0, y1 = front_disk_box(splats, k, margin)
+        x0, x1, y0, y1 = max(x0, 0), min(x1, fw - 1), max(y0, 0), min(y1, fh - 1)
+        if x0 <= x1 and y0 <= y1:
+            box[k, 0], box[k, 1], box[k, 2], box[k, 3] = x0, x1, y0, y1
+            use[k] = True
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def front_boxes(splats, visible, fw, fh, margin, box, use):
-    """The front map's boxes (``front_disk_box``, clipped to the fw x fh map) of the visible
-    opaque splats into box (N, 4) int32, and use (N,): whether splat k draws a disk."""
+    """``front_box`` of every splat: box (N, 4) int32 and use (N,) bool."""
     for k in numba.prange(splats.shape[0]):
-        use[k] = False
-        if visible[k] and splats[k, ALPHA] >= OPAQUE and math.isfinite(splats[k, MX]) \
-                and math.isfinite(splats[k, MY]):
-            x0, x1, y0, y1 = front_disk_box(splats, k, margin)
-            x0, x1, y0, y1 = max(x0, 0), min(x1, fw - 1), max(y0, 0), min(y1, fh - 1)
-            if x0 <= x1 and y0 <= y1:
-                box[k, 0], box[k, 1], box[k, 2], box[k, 3] = x0, x1, y0, y1
-                use[k] = True
+        front_box(splats, visible, k, fw, fh, margin, box, use)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
