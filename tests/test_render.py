@@ -1,6 +1,7 @@
 """Whole-frame rendering: coverage, partial occlusion, transparency, parity with the twins."""
 
 import dataclasses
+import math
 
 import numba
 import numpy as np
@@ -214,6 +215,25 @@ def test_image_does_not_depend_on_thread_count_or_banding(lod):
     assert banded.stats["bands"] > 2
     np.testing.assert_array_equal(banded.image, many.image)
     assert banded.stats["fragments"] == many.stats["fragments"]
+
+
+def test_tile_order_visits_every_row_once_and_spreads_each_run():
+    """The raster and front passes take tile row (k stride) mod n for k = 0 .. n - 1
+    (abuffer.tile_stride): every row exactly once, and a thread's contiguous run of k
+    (numba's static schedule) spread over the band, not one part of it. The bound: the run
+    of the first half of k takes between 40 and 60 % of the rows of each half of the band
+    (a Weyl sequence with a step near n / phi is within a few rows of a half)."""
+    from dofsplat.raster.abuffer import tile_stride
+
+    for n in [1, 2, 3, 4, 7, 64, 97, 1020, 1024, 8160]:
+        stride = tile_stride(n)
+        order = (np.arange(n) * stride) % n
+        assert math.gcd(stride, n) == 1
+        np.testing.assert_array_equal(np.sort(order), np.arange(n))
+        if n >= 64:
+            first = order[: n // 2]  # the rows the first of two threads draws
+            top = np.count_nonzero(first < n // 2)
+            assert 0.4 * (n // 2) <= top <= 0.6 * (n // 2), (n, top)
 
 
 @pytest.mark.parametrize("band", [(0, 9), (3, 7)])
