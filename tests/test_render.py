@@ -218,15 +218,16 @@ def test_image_does_not_depend_on_thread_count_or_banding(lod):
 
 
 def test_tile_order_visits_every_row_once_and_spreads_each_run():
-    """The raster and front passes take tile row (k stride) mod n for k = 0 .. n - 1
-    (abuffer.tile_stride): every row exactly once, and a thread's contiguous run of k
-    (numba's static schedule) spread over the band, not one part of it. The bound: the run
-    of the first half of k takes between 40 and 60 % of the rows of each half of the band
-    (a Weyl sequence with a step near n / phi is within a few rows of a half)."""
-    from dofsplat.raster.abuffer import tile_stride
+    """The raster and front passes take tile row (k stride) mod n for k = 0 .. n - 1, the
+    projection its blocks of splats likewise (dofsplat/parallel.py): every row exactly
+    once, and a thread's contiguous run of k (numba's static schedule) spread over the
+    band, not one part of it. The bound: the run of the first half of k takes between 40
+    and 60 % of the rows of each half of the band (a Weyl sequence with a step near n / phi
+    is within a few rows of a half)."""
+    from dofsplat.parallel import weyl_stride
 
     for n in [1, 2, 3, 4, 7, 64, 97, 1020, 1024, 8160]:
-        stride = tile_stride(n)
+        stride = weyl_stride(n)
         order = (np.arange(n) * stride) % n
         assert math.gcd(stride, n) == 1
         np.testing.assert_array_equal(np.sort(order), np.arange(n))

@@ -25,6 +25,7 @@ import math
 import numba
 import numpy as np
 
+from ..parallel import weyl_stride
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
 from ..splat.ewa import (NARROW_BBOX, NARROW_ROWS, coc_radius_px, column_start, column_step,
                          exponent, row_pixel_range, row_span, row_start)
@@ -351,33 +352,17 @@ def front_boxes(splats, visible, fw, fh, margin, box, use):
         front_box(splats, visible, k, fw, fh, margin, box, use)
 
 
-@numba.njit(cache=True, nogil=True)
-def tile_stride(n):
-    """A step coprime to n, near n / phi: row (k stride) mod n for k = 0 .. n - 1 visits
-    each of a band's n tile rows once, and any run of consecutive k spreads over the whole
-    band (a Weyl sequence). numba hands each thread a contiguous run of a prange's indices;
-    in row order the bottom of a frame (a floor near the camera, its blur) fell to one
-    thread, which then worked alone (bench/RESULTS.md). The tiles of a row stay in order
-    (they share splats)."""
-    s = max(int(n * 0.6180339887498949), 1)
-    while True:
-        a, b = s, n
-        while b:
-            a, b = b, a % b
-        if a == 1:
-            return s
-        s += 1
-
-
 @numba.njit(cache=True, nogil=True, parallel=True)
 def front_band(splats, offsets, ids, n_tx, fw, fh, margin, front):
     """The front pass over the front map's tiles (``bin_splats`` of ``front_boxes``):
     opaque unblurred disks into ``front``."""
     n_tiles = offsets.shape[0] - 1
+    # the tile rows in a Weyl order, each row's tiles in order (they share splats): every
+    # thread gets rows from the whole band (dofsplat/parallel.py)
     n_rows = n_tiles // n_tx
-    stride = tile_stride(n_rows)
+    stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
-        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx  # rows spread (tile_stride)
+        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx
         px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
         px1, py1 = min(px0 + TILE, fw) - 1, min(py0 + TILE, fh) - 1
         for e in range(offsets[t], offsets[t + 1]):
@@ -660,10 +645,12 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     ress = np.empty((pool, 7), np.float64)
     orders = np.empty((pool, MAX_SURFACES), np.int64)
     scratches = np.empty((pool, RESOLVE_SCRATCH), np.float64)
+    # the tile rows in a Weyl order, each row's tiles in order (they share splats): every
+    # thread gets rows from the whole band (dofsplat/parallel.py)
     n_rows = n_tiles // n_tx
-    stride = tile_stride(n_rows)
+    stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
-        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx  # rows spread (tile_stride)
+        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx
         ty = ty0 + t // n_tx
         tx = t % n_tx
         px0, py0 = tx * TILE, ty * TILE

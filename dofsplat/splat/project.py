@@ -21,6 +21,7 @@ import math
 import numba
 import numpy as np
 
+from ..parallel import weyl_stride
 from .bokeh import aperture_mass, edge_mix
 from .ewa import color_slope, kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
@@ -30,6 +31,8 @@ from .ewa import color_slope, kernel_bbox, kernel_pixel_sum, max_eigenvalue, pro
 (MX, MY, C11, C12, C22, AMP, ZLO, ZHI, DEPTH, RED, GREEN, BLUE, ALPHA, X0, X1, FLOOR, RAD,
  REACH, MIX, COC, F11, F12, F22, GZX, GZY, RX, RY, GX, GY, BX, BY) = range(31)
 N_FIELDS = 31
+# splats per block of project_splats' schedule (a Weyl order of blocks; dofsplat/parallel.py)
+PROJECT_BLOCK = 256
 N_RASTER_FIELDS = 19
 SPLAT_FIELDS = ("mx", "my", "c11", "c12", "c22", "amp", "z_lo", "z_hi", "depth",
                 "red", "green", "blue", "alpha", "x0", "x1", "floor", "aperture_radius_px",
@@ -59,11 +62,17 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     n = positions.shape[0]
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
-    for k in numba.prange(n):
-        project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
-                      cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
-                      visible)
+    # blocks of splats in a Weyl order (dofsplat/parallel.py): the tree's order is spatial,
+    # and near, wide splats cost most (their exact normalisation sums their pixels)
+    n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
+    stride = weyl_stride(n_blocks)
+    for u in numba.prange(n_blocks):
+        b = (u * stride) % n_blocks
+        for k in range(b * PROJECT_BLOCK, min((b + 1) * PROJECT_BLOCK, n)):
+            project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
+                          view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+                          z_margin, cull_backfaces, exact_norm, floor, disc, blades, moments,
+                          out, bbox, visible)
 
 
 # not inline="always": numba's inliner refuses a function with this many arguments
