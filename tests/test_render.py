@@ -225,7 +225,12 @@ def test_tile_order_visits_every_row_once_and_spreads_each_run():
     and 60 % of the rows of each half of the band (a Weyl sequence with a step near n / phi
     is within a few rows of a half)."""
     from dofsplat.parallel import weyl_stride
+    from dofsplat.raster.abuffer import spread_tile
 
+    for n_rows, n_tx in [(1, 1), (5, 3), (32, 32), (68, 120)]:  # the passes' own mapping
+        stride = weyl_stride(n_rows)
+        tiles = [spread_tile(u, n_tx, n_rows, stride) for u in range(n_rows * n_tx)]
+        np.testing.assert_array_equal(np.sort(tiles), np.arange(n_rows * n_tx))
     for n in [1, 2, 3, 4, 7, 64, 97, 1020, 1024, 8160]:
         stride = weyl_stride(n)
         order = (np.arange(n) * stride) % n

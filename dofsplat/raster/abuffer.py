@@ -352,17 +352,23 @@ def front_boxes(splats, visible, fw, fh, margin, box, use):
         front_box(splats, visible, k, fw, fh, margin, box, use)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def spread_tile(u, n_tx, n_rows, stride):
+    """The tile that a band's pass visits u-th (of n_rows x n_tx): the rows in a Weyl order
+    (stride = ``weyl_stride(n_rows)``; dofsplat/parallel.py), so that every thread gets rows
+    from the whole band, and each row's tiles in order (they share splats)."""
+    return ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def front_band(splats, offsets, ids, n_tx, fw, fh, margin, front):
     """The front pass over the front map's tiles (``bin_splats`` of ``front_boxes``):
     opaque unblurred disks into ``front``."""
     n_tiles = offsets.shape[0] - 1
-    # the tile rows in a Weyl order, each row's tiles in order (they share splats): every
-    # thread gets rows from the whole band (dofsplat/parallel.py)
     n_rows = n_tiles // n_tx
     stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
-        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx
+        t = spread_tile(u, n_tx, n_rows, stride)
         px0, py0 = (t % n_tx) * TILE, (t // n_tx) * TILE
         px1, py1 = min(px0 + TILE, fw) - 1, min(py0 + TILE, fh) - 1
         for e in range(offsets[t], offsets[t + 1]):
@@ -645,12 +651,10 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     ress = np.empty((pool, 7), np.float64)
     orders = np.empty((pool, MAX_SURFACES), np.int64)
     scratches = np.empty((pool, RESOLVE_SCRATCH), np.float64)
-    # the tile rows in a Weyl order, each row's tiles in order (they share splats): every
-    # thread gets rows from the whole band (dofsplat/parallel.py)
     n_rows = n_tiles // n_tx
     stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
-        t = ((u // n_tx) * stride) % n_rows * n_tx + u % n_tx
+        t = spread_tile(u, n_tx, n_rows, stride)
         ty = ty0 + t // n_tx
         tx = t % n_tx
         px0, py0 = tx * TILE, ty * TILE
