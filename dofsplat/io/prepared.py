@@ -10,7 +10,8 @@ preparation code. The key is a hash of:
   material library and textures: ``referenced_files``), and a ``texture`` option's file;
 * the loader and its options;
 * the source of the preparation code (``dofsplat/prep``, ``dofsplat/io``,
-  ``dofsplat/surfels.py``, and the renderer's for ``normalise="render"``, which renders):
+  ``dofsplat/surfels.py``, and the renderer's unless ``normalise="none"``: both
+  normalisations render, "render" its captures and "object" its level):
   a change to how surfels are made makes old entries unused (the size cap evicts them).
 
 Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model read back from the
@@ -69,7 +70,7 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> 
 def cache_key(path: Path, loader, options: dict) -> str:
     """The hash that names a prepared model (module notes)."""
     h = hashlib.blake2b(digest_size=16)
-    h.update(_code_hash(render=options.get("normalise") == "render").encode())
+    h.update(_code_hash(render=options.get("normalise") != "none").encode())
     h.update(f"{loader.__module__}.{loader.__qualname__}".encode())
     h.update(repr(sorted((k, str(v)) for k, v in options.items())).encode())
     _hash_file(h, path)
