@@ -236,8 +236,8 @@ def rendered_level(surfels: Surfels, *, views: int = LEVEL_VIEWS,
     ``LEVEL_MAX_READING`` (a few surfels with runaway weights, as the "render" method
     leaves on the lion, would otherwise set the level). Where the views find fewer than
     ``LEVEL_MIN_PIXELS`` interior pixels (a handful of surfels) the level cannot be read and
-    is 1. On a flat random sampling it reads 1.001, on the lion scan 0.974 and on the
-    dragon 0.991 (docs/maths.md).
+    is 1. On a flat random sampling it reads 1.00, on the lion scan 0.974 and on the
+    sampled dragon mesh 0.990 (docs/maths.md; ``python bench/density.py --level``).
     """
     from ..render import RenderSettings, render
 
