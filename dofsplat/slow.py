@@ -451,8 +451,9 @@ def visibility_reference(s, front, merge, width, margin=None):
     if hidden < VIS_SAMPLES or removed >= 1 or np.linalg.norm(g) >= 1e29:
         return 1 - removed
     p, e = pixel(m)
-    if zlo + g @ e - MERGE_REACH * np.linalg.norm(g) * (s[COC] + 1) > front[p, 2]:
-        return 1 - removed  # its blurred fragments' z-ranges do not reach the front's
+    if removed == 0 and \
+            zlo + g @ e - MERGE_REACH * np.linalg.norm(g) * (s[COC] + 1) > front[p, 2]:
+        return 1.0  # nothing merges it into the front: "over" hides it
     looks = []
     for n, o in enumerate(points):
         parallax = (LENS_RING * merge[0] * abs(1 / front[pixel(m + o)[0], 0] - 1 / s[DEPTH])

@@ -152,6 +152,43 @@ def test_a_surface_hidden_from_the_whole_lens_does_not_merge():
 
 
 @pytest.mark.parametrize("lod", [False, True])
+def test_a_hidden_surface_in_the_merge_band_does_not_show_through(lod):
+    """A plane behind an opaque one, both facing the camera, blurred so that their parallax
+    ratio rho (``abuffer.merge_fraction``) lies inside the merge band (0.35: m = 0.6). The
+    rear plane is hidden at every point of its disk; its z-ranges are far from the front's,
+    so the A-buffer keeps the two apart, but the resolve merges neighbouring surfaces with
+    probability m. The front pass used to remove only the m share of such a splat and skip
+    the looks through the lens (its fragments "cannot reach" the front's), so the resolve
+    merged the remaining 1 - m with probability m: the rear plane's green came through the
+    red front at 0.147 everywhere (0.383 with LOD). Now a splat with any merge share is
+    looked at, and hidden from the whole lens it is removed. Inside the front, 12 px and
+    more from its edge (the pair's parallax is under 1 px), every lens sample of the
+    reference sees the front alone: green 0 in 64 samples. Measured now: 0 (no LOD) and
+    0.0015 (LOD). The bound, 0.01, is a fifteenth of the old leak."""
+    d_front, d_rear, focus = 4.0, 4.4, 10.0
+    cam = ds.Camera(eye=(0, 0, 0), target=(0, 0, -1), width=64, height=64, fov_y=30.0)
+
+    def plane(depth, n, color):
+        g = (np.arange(n) - (n - 1) / 2) * 0.01
+        x, y = (a.ravel() for a in np.meshgrid(g, g))
+        return ds.Surfels(np.stack([x, y, np.full_like(x, -depth)], 1),
+                          np.tile([0.0, 0.0, 1.0], (x.size, 1)), np.full(x.size, 0.01),
+                          np.tile(color, (x.size, 1)))
+
+    from dofsplat.surfels import concatenate
+
+    surfels = concatenate([plane(d_front, 160, (1.0, 0.0, 0.0)),
+                           plane(d_rear, 200, (0.0, 1.0, 0.0))])
+    unit = ds.ThinLens(focus_distance=focus, aperture=1.0)
+    lens = ds.ThinLens(focus_distance=focus, aperture=5.0 / unit.coc_radius_px(d_front, cam))
+    k, inv_p = lens.coc_coefficients(cam)
+    rho = (k * (1 / d_front - 1 / d_rear) + 1) / (k * (1 / d_front - inv_p))
+    assert 0.3 < rho < 0.4  # inside the band (0.15, 0.5)
+    img = ds.render(surfels, cam, lens, ds.RenderSettings(shading="none", lod=lod)).image
+    assert float(img[20:44, 20:44, 1].max()) < 0.01
+
+
+@pytest.mark.parametrize("lod", [False, True])
 def test_a_front_that_ends_beyond_the_frame_reveals_what_it_hides(lod):
     """The front map reaches FRONT_MARGIN pixels beyond the image (``abuffer.front_read``):
     where a surface ends just outside the frame, the surface behind it, whose blur reaches

@@ -480,8 +480,9 @@ def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, r
     # surface's depths over its CoC and, merge after merge, beyond): they would merge with
     # the front's. Behind a front they cannot reach, "over" hides it as it should
     p, ex, ey = front_at(mx, my, front, fw, fh, margin, inside)
-    if zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[p, 2]:
-        return 1.0 - removed
+    if removed == 0.0 and \
+            zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[p, 2]:
+        return 1.0
     # hidden where the pinhole looks: is it hidden from the whole lens? Its own surface,
     # extended along its tangent plane, must not hide it (a convex surface curves away
     # from its tangent plane, behind it)
