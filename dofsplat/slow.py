@@ -483,20 +483,27 @@ def _alpha(s, merge):
     """A surface's opacity (abuffer.layer_alpha): min(1, w) x mean opacity, at least the
     coverage of its opaque fragments' weights w_o; where the surface is sharp (CoC radius at
     its mean depth up to COVER_SHARP_PX, fading out by twice that: abuffer.sharpness), that
-    coverage reaches 1 at w_o = COVER_FULL, rising linearly from w_o at COVER_KNEE."""
-    from .raster.abuffer import COVER_FULL, COVER_KNEE, COVER_SHARP_PX
+    coverage reaches 1 at w_o = COVER_FULL, rising linearly from w_o at COVER_KNEE; where
+    it is blurred, at BLUR_COVER_FULL from BLUR_COVER_KNEE (weighted by 1 - sharpness). The
+    paper's reconstruction keeps min(1, w_o)."""
+    from .raster.abuffer import (BLUR_COVER_FULL, BLUR_COVER_KNEE, COVER_FULL, COVER_KNEE,
+                                 COVER_SHARP_PX)
 
     coc_k, inv_focus = merge[0], merge[1]
     d = s[5] / s[0]
+    wo = s[6]
+    cover = min(1.0, wo)
     if coc_k < 0:  # the paper's reconstruction: its own min(1, w)
-        sharp = 0.0
+        return max(min(1.0, s[0]) * s[4] / s[0], cover)
     elif coc_k == 0 or d <= 0:  # a pinhole
         sharp = 1.0
     else:
         sharp = float(np.clip(2 - coc_k * abs(1 / d - inv_focus) / COVER_SHARP_PX, 0, 1))
-    cover = min(1.0, s[6])
-    if sharp > 0 and s[6] > COVER_KNEE:
-        knee = float(np.interp(s[6], [COVER_KNEE, COVER_FULL], [COVER_KNEE, 1.0]))
+    if sharp < 1 and wo > BLUR_COVER_KNEE:
+        ramp = float(np.interp(wo, [BLUR_COVER_KNEE, BLUR_COVER_FULL], [BLUR_COVER_KNEE, 1.0]))
+        cover += (1 - sharp) * (ramp - cover)
+    if sharp > 0 and wo > COVER_KNEE:
+        knee = float(np.interp(wo, [COVER_KNEE, COVER_FULL], [COVER_KNEE, 1.0]))
         cover += sharp * (knee - cover)
     return max(min(1.0, s[0]) * s[4] / s[0], cover)
 

@@ -70,7 +70,7 @@ def test_a_sharp_surface_covers_its_pixel_from_cover_full():
 
     k, inv_p = MERGE[:2]
     assert sharpness(3.0, k, inv_p) == 1.0 and sharpness(3.0, 0.0, 0.0) == 1.0
-    assert sharpness(3.0, -1.0, 0.0) == 0.0  # the paper's reconstruction: its min(1, w)
+    assert sharpness(3.0, -1.0, 0.0) == -1.0  # the paper's reconstruction: its min(1, w)
     assert sharpness(1.5, k, inv_p) == 0.0  # C_r = 6.7 px
     d_half = 1.0 / (inv_p + 1.5 * COVER_SHARP_PX / k)  # C_r = 1.5 px
     assert sharpness(d_half, k, inv_p) == pytest.approx(0.5, abs=1e-12)
@@ -78,7 +78,12 @@ def test_a_sharp_surface_covers_its_pixel_from_cover_full():
     for wo, sharp, want in [(0.5, 1.0, 0.5), (COVER_KNEE, 1.0, COVER_KNEE),
                             (mid, 1.0, 0.5 * (COVER_KNEE + 1.0)), (COVER_FULL, 1.0, 1.0),
                             (0.95, 1.0, 1.0), (1.3, 1.0, 1.0), (0.95, 0.0, 0.95),
-                            (0.95, 0.5, 0.975), (0.5, 0.0, 0.5)]:
+                            (0.95, 0.5, 0.975), (0.5, 0.0, 0.5),
+                            # blurred: 1 from BLUR_COVER_FULL (0.98), linear from 0.95
+                            (0.965, 0.0, 0.975), (0.98, 0.0, 1.0), (0.99, 0.0, 1.0),
+                            (0.965, 0.5, 0.985), (0.96, 1.0, 1.0),
+                            # the paper's reconstruction keeps min(1, w_o)
+                            (0.97, -1.0, 0.97), (0.88, -1.0, 0.88)]:
         assert layer_alpha(wo, wo, wo, sharp) == pytest.approx(want, abs=1e-12)
     # a translucent surface (no opaque weight) keeps the paper's min(1, w) x mean alpha
     assert layer_alpha(0.95, 0.95 * 0.5, 0.0, 1.0) == pytest.approx(0.475, abs=1e-12)

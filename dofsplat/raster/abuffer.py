@@ -62,6 +62,15 @@ FRONT_MARGIN = 128
 COVER_FULL = 0.9
 COVER_KNEE = 0.85
 COVER_SHARP_PX = 1.0
+# A blurred surface's kernels sum to 1 within a few thousandths when they are surfels, but an
+# LOD cut's nodes (irregular, each one Gaussian for many surfels) ripple by up to 2-4 % (the
+# fidelity suite's crossing planes: weights 0.97-1.02 inside the front plane at a 40 px CoC),
+# and what lies behind showed through as speckle. A blurred surface covers its pixel from
+# BLUR_COVER_FULL, rising from w_o at BLUR_COVER_KNEE: a blurred rim's share of the lens is
+# kept below the knee, and changed by at most 1 - BLUR_COVER_KNEE above it (docs/maths.md,
+# "A blurred surface covers its pixel")
+BLUR_COVER_KNEE = 0.95
+BLUR_COVER_FULL = 0.98
 # the merge band: two surfaces whose parallax ratio rho = (Delta + 1 px) / max(C_r) is below
 # MERGE_RHO0 merge, above MERGE_RHO1 stay separate, smoothly in between (docs/maths.md)
 MERGE_RHO0 = 0.15
@@ -240,14 +249,21 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
 def sharpness(d, coc_k, inv_focus):
     """How sharp a surface at depth d is, for its coverage (``layer_alpha``): 1 up to a
     CoC radius of COVER_SHARP_PX, 0 from twice that, linear between; 1 in a pinhole frame
-    (coc_k = 0); 0 in the paper's reconstruction (coc_k < 0, ``frame.merge_parameters``),
+    (coc_k = 0); -1 in the paper's reconstruction (coc_k < 0, ``frame.merge_parameters``),
     whose coverage is the paper's min(1, w)."""
     if coc_k < 0.0:
-        return 0.0
+        return -1.0
     if coc_k == 0.0 or d <= 0.0:
         return 1.0
     return min(max(2.0 - coc_radius_px(d, coc_k, inv_focus) / COVER_SHARP_PX, 0.0), 1.0)
 
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def cover_ramp(wo, knee, full):
+    """min(1, wo), but 1 from wo = full up, rising linearly from wo at the knee."""
+    if wo <= knee:
+        return wo
+    return min(1.0, knee + (wo - knee) * ((1.0 - knee) / (full - knee)))
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def layer_alpha(w, wa, wo, sharp):
@@ -256,12 +272,16 @@ def layer_alpha(w, wa, wo, sharp):
     least the coverage of its opaque fragments (a translucent surface merged with an
     opaque one where they touch does not let the background through): min(1, wo), and
     for a sharp surface a sum from COVER_FULL up covers the pixel (its kernels' ripple),
-    rising from wo at COVER_KNEE (a rim's weights below it are kept)."""
+    rising from wo at COVER_KNEE (a rim's weights below it are kept); for a blurred one
+    (sharp < 1) from BLUR_COVER_FULL, rising from BLUR_COVER_KNEE (an LOD cut's ripple);
+    the paper's reconstruction (sharp < 0) keeps min(1, wo)."""
     cover = min(1.0, wo)
+    if 0.0 <= sharp < 1.0 and wo > BLUR_COVER_KNEE:
+        cover += (1.0 - sharp) * (cover_ramp(wo, BLUR_COVER_KNEE, BLUR_COVER_FULL) - cover)
     if sharp > 0.0 and wo > COVER_KNEE:
-        knee = min(1.0, COVER_KNEE + (wo - COVER_KNEE) * ((1.0 - COVER_KNEE) / (COVER_FULL - COVER_KNEE)))
-        cover += sharp * (knee - cover)
+        cover += sharp * (cover_ramp(wo, COVER_KNEE, COVER_FULL) - cover)
     return max(min(1.0, w) * wa / w, cover)
+
 
 
 @numba.njit(cache=True, nogil=True)
