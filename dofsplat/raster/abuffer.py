@@ -68,7 +68,7 @@ COVER_SHARP_PX = 1.0
 # and what lies behind showed through as speckle. A blurred surface covers its pixel from
 # BLUR_COVER_FULL, rising from w_o at BLUR_COVER_KNEE: a blurred rim's share of the lens is
 # kept below the knee, and changed by at most 1 - BLUR_COVER_KNEE above it (docs/maths.md,
-# "A blurred surface covers its pixel")
+# "A blurred surface covers its pixel too")
 BLUR_COVER_KNEE = 0.95
 BLUR_COVER_FULL = 0.98
 # the merge band: two surfaces whose parallax ratio rho = (Delta + 1 px) / max(C_r) is below
@@ -265,6 +265,7 @@ def cover_ramp(wo, knee, full):
         return wo
     return min(1.0, knee + (wo - knee) * ((1.0 - knee) / (full - knee)))
 
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def layer_alpha(w, wa, wo, sharp):
     """A surface's opacity from its sums of weights w, weighted opacities wa and weights of
@@ -281,7 +282,6 @@ def layer_alpha(w, wa, wo, sharp):
     if sharp > 0.0 and wo > COVER_KNEE:
         cover += sharp * (cover_ramp(wo, COVER_KNEE, COVER_FULL) - cover)
     return max(min(1.0, w) * wa / w, cover)
-
 
 
 @numba.njit(cache=True, nogil=True)
@@ -498,7 +498,8 @@ def splat_visibility(splats, k, front, fw, fh, margin, coc_k, inv_focus, rho0, r
     # only a splat whose blurred fragments' z-ranges reach those of the front's (the
     # A-buffer unites the z-ranges of the fragments a blur brings to a pixel, which span a
     # surface's depths over its CoC and, merge after merge, beyond): they would merge with
-    # the front's. Behind a front they cannot reach, "over" hides it as it should
+    # the front's. Behind a front they cannot reach, "over" hides it as it should, unless
+    # the resolve merges it into the front: with a merge share (removed > 0) it is looked at
     p, ex, ey = front_at(mx, my, front, fw, fh, margin, inside)
     if removed == 0.0 and \
             zlo + gx * ex + gy * ey - MERGE_REACH * grad * (splats[k, COC] + 1.0) > front[p, 2]:
