@@ -64,8 +64,8 @@ COVER_KNEE = 0.85
 COVER_SHARP_PX = 1.0
 # A blurred surface's kernels sum to 1 within a few thousandths when they are surfels, but an
 # LOD cut's nodes (irregular, each one Gaussian for many surfels) ripple by up to 2-4 % (the
-# fidelity suite's crossing planes: weights 0.97-1.02 inside the front plane at a 40 px CoC),
-# and what lies behind showed through as speckle. A blurred surface covers its pixel from
+# fidelity suite's crossing planes: weights 0.97-1.02 inside the front plane at a 40 px CoC,
+# a development measurement), and what lies behind showed through as speckle. A blurred surface covers its pixel from
 # BLUR_COVER_FULL, rising from w_o at BLUR_COVER_KNEE: a blurred rim's share of the lens is
 # kept below the knee, and changed by at most 1 - BLUR_COVER_KNEE above it (docs/maths.md,
 # "A blurred surface covers its pixel too")
