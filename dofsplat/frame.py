@@ -41,6 +41,7 @@ class RenderSettings:
     lod: bool = True  # splat an LOD cut (Sections 5.3, 6.2): speed independent of the aperture
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
+    lod_color_tolerance: float = 0.02  # LOD: a node with more texture at its own scale than this (RMS, linear RGB: Hierarchy.color_detail) is cut finer, down to 0.3 x the blur fraction; inf: off (docs/maths.md, "A finer cut where the texture needs it")
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
@@ -71,6 +72,9 @@ class RenderSettings:
             raise DofsplatError(f"lod_pixel_threshold must be >= 0, got {self.lod_pixel_threshold}")
         if not (math.isfinite(self.lod_blur_fraction) and 0 < self.lod_blur_fraction <= 1):
             raise DofsplatError(f"lod_blur_fraction must be in (0, 1], got {self.lod_blur_fraction}")
+        if not (self.lod_color_tolerance >= 0):  # inf allowed (off), nan refused
+            raise DofsplatError(f"lod_color_tolerance must be >= 0 (inf: off), got "
+                                f"{self.lod_color_tolerance}")
         if self.reconstruction not in RECONSTRUCTIONS:
             raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
                                 f"got {self.reconstruction!r}")

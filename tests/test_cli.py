@@ -412,6 +412,24 @@ def test_show_lod_needs_lod(plane_ply, workdir, capsys):
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-blur-fraction", "1.5"], capsys)
     assert_one_line_error(status, err)
     assert "(0, 1]" in err and not os.path.exists("x.png")
+    status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-color-tolerance", "-1"],
+                              capsys)
+    assert_one_line_error(status, err)
+    assert ">= 0" in err and not os.path.exists("x.png")
+
+
+def test_lod_color_tolerance_off(plane_ply, workdir, capsys):
+    """'inf' turns the finer cut for textured nodes off; the stats file records it as null
+    (JSON has no infinity)."""
+    status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--size", SIZE_ARG,
+                               "--lod-color-tolerance", "inf", "--stats", "x.json",
+                               "--lod-cache", "off"], capsys)
+    assert status == 0, err
+    assert json.load(open("x.json"))["settings"]["lod_color_tolerance"] is None
+    status, _, err = run_main(["render", plane_ply, "-o", "y.png", "--size", SIZE_ARG,
+                               "--stats", "y.json", "--lod-cache", "off"], capsys)
+    assert status == 0, err
+    assert json.load(open("y.json"))["settings"]["lod_color_tolerance"] == 0.02
 
 
 def test_z_up_framing_looks_from_the_front(plane_ply, workdir, capsys):

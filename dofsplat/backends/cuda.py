@@ -187,8 +187,8 @@ def _scatter_flagged(flags, position, nodes):
 
 @cuda.jit
 def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, center, bound, extent,
-               position, normal, cone, sigma_r2, lod_cov, view, ax, bx, ay, by, near, width,
-               height, coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces):
+               position, normal, cone, sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near,
+               width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces):
     """Level ``depth`` of the breadth-first cut: visit each of its sizes[depth] nodes in
     ``frontier``, flag it or append its children to ``next_frontier`` (sizes[depth + 1]).
 
@@ -200,8 +200,9 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, cente
         what = SELECT  # a leaf: its surfel
         if m > 1:  # an inner node: its attributes are row i - start[i] (lod/hierarchy.py)
             what = _visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
-                               sigma_r2, lod_cov, view, ax, bx, ay, by, near, width, height,
-                               coc_k, inv_focus, cutoff, thr2, kappa, cull_backfaces)
+                               sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near, width,
+                               height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
+                               cull_backfaces)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
@@ -536,7 +537,7 @@ def _array_key(surfels) -> tuple:
 
 
 TREE_ARRAYS = ("order", "start", "count", "center", "bound", "extent", "position", "normal",
-               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "color_grad")
+               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "color_grad", "color_detail")
 
 
 def device_scene(surfels, tree=None) -> DeviceScene:
@@ -598,9 +599,10 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
         _lod_level[grid, THREADS](
             depth, sizes, fronts[depth % 2], fronts[1 - depth % 2], flags, d["start"], d["count"],
             d["center"], d["bound"], d["extent"], d["position"], d["normal"], d["cone"],
-            d["sigma_r2"], d["lod_cov"], view, ax, bx, ay, by, near, camera.width, camera.height,
-            float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
-            float(lod_kappa(settings, parts)), bool(settings.cull_backfaces))
+            d["sigma_r2"], d["lod_cov"], d["color_detail"], view, ax, bx, ay, by, near, camera.width,
+            camera.height, float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
+            float(lod_kappa(settings, parts)), float(settings.lod_color_tolerance),
+            bool(settings.cull_backfaces))
 
     # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
     position = _WS.get("lod.position", (n_nodes + 1,), np.int64)

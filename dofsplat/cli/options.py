@@ -306,6 +306,13 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                           "close to the exact picture (0-5 dB from --no-lod on the fidelity "
                           "suite, 0.5-10 dB at 1) for 1.4-2.8x a pinhole frame at a 40-pixel "
                           "blur; 1 is the paper's rule, faster and softer")
+    lod.add_argument("--lod-color-tolerance", metavar="T", type=tolerance,
+                     default=RenderSettings.lod_color_tolerance,
+                     help="draw a node finer where it has more texture at its own scale "
+                          "than T (RMS, linear RGB; what its colour ramp cannot draw): "
+                          "down to 0.3 x K (default: 0.02; 'inf' turns it off). Keeps "
+                          "checkers and textures within 1 dB of --no-lod on the fidelity "
+                          "suite")
     lod.add_argument("--show-lod", action="store_true",
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
@@ -390,6 +397,13 @@ def non_negative(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
     return value
+
+
+def tolerance(text: str) -> float:
+    """A number >= 0, or 'inf' (off)."""
+    if text.strip().lower() in ("inf", "off"):
+        return float("inf")
+    return non_negative(text)
 
 
 def fraction(text: str) -> float:

@@ -30,15 +30,16 @@ def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
 
 def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                   cutoff: float, pixel_threshold: float, cull_backfaces: bool,
-                  blur_fraction: float = 1.0):
+                  blur_fraction: float = 1.0, color_tolerance: float = float("inf")):
     """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
     return gather_cut(tree, surfels, select_cut(tree, surfels, camera, coc_k, inv_focus, cutoff,
-                                                pixel_threshold, cull_backfaces, blur_fraction))
+                                                pixel_threshold, cull_backfaces, blur_fraction,
+                                                color_tolerance))
 
 
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                cutoff: float, pixel_threshold: float, cull_backfaces: bool,
-               blur_fraction: float = 1.0):
+               blur_fraction: float = 1.0, color_tolerance: float = float("inf")):
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
     ``cut_nodes``)."""
@@ -51,10 +52,12 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
     select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
-                                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov),
+                                  tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
+                                  tree.color_detail),
                  tree.small, model_arrays(tree, surfels), view, ax, bx, ay, by, near,
                  camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
-                 float(pixel_threshold) ** 2, float(blur_fraction), bool(cull_backfaces), flags)
+                 float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
+                 bool(cull_backfaces), flags)
     return cut_nodes(flags, tree.n_surfels, tree.small)
 
 

@@ -43,7 +43,14 @@ splatting need (Sections 5.3 and 6.2; docs/maths.md, "Level of detail"):
   colours with their positions along the two axes of its tangent frame (``tangent_frame``
   of its normal): where the box-filtered mean colour loses a texture's edges, the
   projection turns this into the colour's slope across the splat (docs/maths.md, "A node's
-  colour gradient"); zero at the leaves.
+  colour gradient"); zero at the leaves;
+* ``color_detail``: the texture at the node's own scale, which the gradient cannot draw.
+  With res^2 the mean square of the surfels' colours about the node's linear fit in its
+  tangent plane (area-weighted, linear RGB, the channels summed), the detail is
+  sqrt(res^2 - the children's res^2, area-weighted): what splitting the node would fit,
+  zero for a flat colour, a ramp or noise finer than the node's children. The cut draws
+  a node of more detail finer (``select.detail_factor``; docs/maths.md, "A finer cut where
+  the texture needs it"); zero at the leaves.
 
 A node's height (for ``--show-lod``) is not stored either: the median split makes it
 ceil(log2 count).
@@ -68,12 +75,12 @@ from ..surfels import Surfels
 # about 90 degrees apart) is split by normal, not by position (docs/maths.md)
 NORMAL_SPREAD = 1.4
 # from this many surfels on, inner nodes of at most SMALL_NODE surfels are not stored (they
-# are computed when a walk reaches them): the tree's memory falls from 124 bytes per surfel
-# to 44-64 (the share of such nodes depends on N), and a frame's selection takes 1.4-1.9 x
+# are computed when a walk reaches them): the tree's memory falls from 128 bytes per surfel
+# to 45-66 (the share of such nodes depends on N), and a frame's selection takes 1.4-1.9 x
 # as long (bench/RESULTS.md)
 COMPACT_FROM = 1 << 22
 SMALL_NODE = 3
-FORMAT_VERSION = 7  # bump when the build or the stored arrays change: old files are rebuilt
+FORMAT_VERSION = 8  # bump when the build or the stored arrays change: old files are rebuilt
 
 
 @dataclass
@@ -100,6 +107,8 @@ class Hierarchy:
     color_grad: (K, 6) float32, Cov(colour, position . t) per channel and tangent axis
               (r.u, r.v, g.u, g.v, b.u, b.v; colour x world units), t = (u, v) the node's
               ``tangent_frame``
+    color_detail: (K,) float32, sqrt(res^2 - children's res^2), res^2 the mean square of the
+              surfels' colours about the node's linear fit (mean colour + gradient), RGB
     fingerprint: hash of the surfel arrays the tree was built from
 
     ``start`` and ``count`` ((M,) int32: each node's first leaf-order position and number of
@@ -121,6 +130,7 @@ class Hierarchy:
     sigma_r2: np.ndarray
     lod_cov: np.ndarray
     color_grad: np.ndarray
+    color_detail: np.ndarray
     fingerprint: str
     small: int = 1
 
@@ -240,7 +250,7 @@ class Hierarchy:
 
 
 ATTRIBUTES = ("center", "bound", "extent", "position", "normal", "cone", "color", "opacity",
-              "area", "sigma_r2", "lod_cov", "color_grad")  # a row per stored node each
+              "area", "sigma_r2", "lod_cov", "color_grad", "color_detail")  # a row per stored node each
 
 
 def _radii_weight(surfels: Surfels):
@@ -319,17 +329,19 @@ def build_hierarchy(surfels: Surfels, progress: bool = False,
     sigma_r2 = np.empty(m_nodes, np.float32)
     lod_cov = np.empty((m_nodes, 6), np.float32)
     color_grad = np.empty((m_nodes, 6), np.float32)
+    color_detail = np.empty(m_nodes, np.float32)
     _node_spheres(order, start, count, positions, ru, rv, center, extent)
     _aggregate(order, start, count, positions, surfels.normals, ru, rv, weight,
                surfels.colors, surfels.opacity, center, bound, extent, position, normal, cone,
-               color, opacity, area, sigma_r2, lod_cov, color_grad)
+               color, opacity, area, sigma_r2, lod_cov, color_grad, color_detail)
     # keep the rows of the nodes of more than `small` surfels (a leaf is its surfel, a
     # small node is computed from its surfels when needed), in preorder (tree_rows)
     keep = count > small
     tree = Hierarchy(order=order, fingerprint=fingerprint(surfels), small=small,
                      **{name: a[keep] for name, a in zip(
                          ATTRIBUTES, (center, bound, extent, position, normal, cone, color,
-                                      opacity, area, sigma_r2, lod_cov, color_grad))})
+                                      opacity, area, sigma_r2, lod_cov, color_grad,
+                                      color_detail))})
     tree.build_seconds = time.perf_counter() - t0  # informational, not stored
     return tree
 
@@ -496,8 +508,9 @@ def _node_spheres(order, start, count, positions, ru, rv, center, extent):
 # stores them (rounded to float32), then the build's float64 moments. Offsets:
 V_CENTER, V_BOUND, V_EXTENT, V_POSITION, V_NORMAL, V_CONE = 0, 3, 4, 5, 8, 11
 V_COLOR, V_OPACITY, V_AREA, V_SIGMA_R2, V_LOD_COV, V_COLOR_GRAD = 12, 15, 16, 17, 18, 24
-V_GEO, V_MEAN, V_COV, V_CMEAN, V_CCOV = 30, 31, 34, 40, 43  # geometric area, moments
-N_VALUES = 52
+V_COLOR_DETAIL = 30
+V_GEO, V_MEAN, V_COV, V_CMEAN, V_CCOV, V_CVAR, V_RES2 = 31, 32, 35, 41, 44, 53, 54  # geometric area, moments
+N_VALUES = 55
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -513,8 +526,8 @@ def _leaf_values(px, py, pz, nx, ny, nz, red, green, blue, ru, rv, weight, alpha
     reach = max(ru, rv)  # its sphere: centred on it, its disk's radius
     z = 0.0
     return (px, py, pz, reach, reach, px, py, pz, nx, ny, nz, z, red, green, blue, alpha,
-            _f32(a_geo * weight), _f32(0.25 * a_geo), z, z, z, z, z, z, z, z, z, z, z, z,
-            a_geo, px, py, pz, z, z, z, z, z, z, red, green, blue, z, z, z, z, z, z, z, z, z)
+            _f32(a_geo * weight), _f32(0.25 * a_geo), z, z, z, z, z, z, z, z, z, z, z, z, z,
+            a_geo, px, py, pz, z, z, z, z, z, z, red, green, blue, z, z, z, z, z, z, z, z, z, z, z)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -535,7 +548,7 @@ def _surfel_leaf(k, positions, normals, ru, rv, weight, colors, alpha):
 def _combine(L, R, cx, cy, cz, extent, full):
     """A node's values from its children's, L and R, and its sphere (``_sphere``: centre
     and extent, as stored). full=False leaves out (as zeros) what the selection does not
-    read: the colour, opacity, colour gradient and normal cone."""
+    read: the colour, opacity, colour gradient, its residual and the normal cone."""
     al, ar = L[V_AREA], R[V_AREA]
     a = al + ar
     # area-weighted means; equal weights if both children carry no area
@@ -562,6 +575,7 @@ def _combine(L, R, cx, cy, cz, extent, full):
     opacity = red = green = blue = 0.0
     e0 = e1 = e2 = 0.0  # the mean colour, float64
     q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = q8 = 0.0  # colour x position covariance
+    cvar = 0.0  # the colour's variance, the channels' summed
     if full:
         opacity = _f32(fl * L[V_OPACITY] + fr * R[V_OPACITY])
         red = _f32(fl * L[V_COLOR] + fr * R[V_COLOR])
@@ -582,6 +596,9 @@ def _combine(L, R, cx, cy, cz, extent, full):
         q6 = fl * (L[V_CCOV + 6] + el * d0l) + fr * (R[V_CCOV + 6] + er * d0r)
         q7 = fl * (L[V_CCOV + 7] + el * d1l) + fr * (R[V_CCOV + 7] + er * d1r)
         q8 = fl * (L[V_CCOV + 8] + el * d2l) + fr * (R[V_CCOV + 8] + er * d2r)
+        dl = ((L[V_CMEAN] - e0) ** 2 + (L[V_CMEAN + 1] - e1) ** 2 + (L[V_CMEAN + 2] - e2) ** 2)
+        dr = ((R[V_CMEAN] - e0) ** 2 + (R[V_CMEAN + 1] - e1) ** 2 + (R[V_CMEAN + 2] - e2) ** 2)
+        cvar = fl * (L[V_CVAR] + dl) + fr * (R[V_CVAR] + dr)
 
     # normal: area-weighted mean; the cone must contain both children's cones
     nx = fl * L[V_NORMAL] + fr * R[V_NORMAL]
@@ -605,6 +622,7 @@ def _combine(L, R, cx, cy, cz, extent, full):
             cone = _f32(min(math.pi, wide * (1.0 + 1e-6) + 1e-6))
 
     g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    detail = res2 = 0.0
     if full:
         # the colour gradient in the node's tangent frame, from its normal as stored
         # (float32), so that the projection derives the same frame
@@ -615,6 +633,10 @@ def _combine(L, R, cx, cy, cz, extent, full):
         g3 = _f32(q3 * vx + q4 * vy + q5 * vz)
         g4 = _f32(q6 * ux + q7 * uy + q8 * uz)
         g5 = _f32(q6 * vx + q7 * vy + q8 * vz)
+        # what the linear fit leaves, and how much of it a split into the children fits
+        res2 = _residual2(cvar, q0, q1, q2, q3, q4, q5, q6, q7, q8, c0, c1, c2, c3, c4, c5,
+                          ux, uy, uz, vx, vy, vz)
+        detail = _f32(math.sqrt(max(res2 - fl * L[V_RES2] - fr * R[V_RES2], 0.0)))
 
     # the sphere (centred on the node's bounding box, _sphere) must also contain both
     # children's spheres; the extra slack covers the float32 rounding of centres
@@ -629,13 +651,46 @@ def _combine(L, R, cx, cy, cz, extent, full):
     return (cx, cy, cz, bound, extent, _f32(m0), _f32(m1), _f32(m2), sx, sy, sz, cone,
             red, green, blue, opacity, _f32(a), _f32(sigma_r2),
             _f32(3.0 * c0), _f32(3.0 * c1), _f32(3.0 * c2), _f32(3.0 * c3), _f32(3.0 * c4),
-            _f32(3.0 * c5), g0, g1, g2, g3, g4, g5,
-            g, m0, m1, m2, c0, c1, c2, c3, c4, c5, e0, e1, e2, q0, q1, q2, q3, q4, q5, q6, q7, q8)
+            _f32(3.0 * c5), g0, g1, g2, g3, g4, g5, detail,
+            g, m0, m1, m2, c0, c1, c2, c3, c4, c5, e0, e1, e2, q0, q1, q2, q3, q4, q5, q6, q7, q8,
+            cvar, res2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _residual2(cvar, q0, q1, q2, q3, q4, q5, q6, q7, q8, c0, c1, c2, c3, c4, c5,
+               ux, uy, uz, vx, vy, vz):
+    """The mean square of a node's colours about their least-squares linear fit in its
+    tangent plane: Var(colour) - sum over channels of g^T C^-1 g, g = Cov(channel, (p.u, p.v)) and C
+    the positions' 2 x 2 covariance in the frame (u, v); C regularised by 1e-9 of its trace,
+    so a node whose surfels lie on a line fits along it alone, and none fitted where they
+    all sit at one point."""
+    # C in the tangent frame, from the world covariance (xx, xy, xz, yy, yz, zz)
+    cux = c0 * ux + c1 * uy + c2 * uz
+    cuy = c1 * ux + c3 * uy + c4 * uz
+    cuz = c2 * ux + c4 * uy + c5 * uz
+    cvx = c0 * vx + c1 * vy + c2 * vz
+    cvy = c1 * vx + c3 * vy + c4 * vz
+    cvz = c2 * vx + c4 * vy + c5 * vz
+    a = ux * cux + uy * cuy + uz * cuz
+    b = ux * cvx + uy * cvy + uz * cvz
+    d = vx * cvx + vy * cvy + vz * cvz
+    eps = 1e-9 * (a + d)
+    a += eps
+    d += eps
+    det = a * d - b * b
+    if not det > 0.0:  # every surfel at one point: no slope to fit
+        return max(cvar, 0.0)
+    explained = 0.0
+    for gx, gy, gz in ((q0, q1, q2), (q3, q4, q5), (q6, q7, q8)):
+        gu = gx * ux + gy * uy + gz * uz
+        gv = gx * vx + gy * vy + gz * vz
+        explained += (d * gu * gu - 2.0 * b * gu * gv + a * gv * gv) / det
+    return max(cvar - explained, 0.0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def load_attributes(i, center, bound, extent, position, normal, cone, color, opacity, area,
-                    sigma_r2, lod_cov, color_grad):
+                    sigma_r2, lod_cov, color_grad, color_detail):
     """Row i of the attribute arrays: the first V_GEO values of ``_combine``'s tuple."""
     f = np.float64
     return (f(center[i, 0]), f(center[i, 1]), f(center[i, 2]), f(bound[i]), f(extent[i]),
@@ -644,24 +699,24 @@ def load_attributes(i, center, bound, extent, position, normal, cone, color, opa
             f(color[i, 2]), f(opacity[i]), f(area[i]), f(sigma_r2[i]), f(lod_cov[i, 0]),
             f(lod_cov[i, 1]), f(lod_cov[i, 2]), f(lod_cov[i, 3]), f(lod_cov[i, 4]),
             f(lod_cov[i, 5]), f(color_grad[i, 0]), f(color_grad[i, 1]), f(color_grad[i, 2]),
-            f(color_grad[i, 3]), f(color_grad[i, 4]), f(color_grad[i, 5]))
+            f(color_grad[i, 3]), f(color_grad[i, 4]), f(color_grad[i, 5]), f(color_detail[i]))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _load(i, center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
-          lod_cov, color_grad, geo, mean, cov, cmean, ccov):
+          lod_cov, color_grad, color_detail, geo, mean, cov, cmean, ccov, cvar, res2):
     """Node i's values from the build's arrays (``_combine``'s tuple)."""
     return load_attributes(i, center, bound, extent, position, normal, cone, color, opacity,
-                           area, sigma_r2, lod_cov, color_grad) + (
+                           area, sigma_r2, lod_cov, color_grad, color_detail) + (
         geo[i], mean[i, 0], mean[i, 1], mean[i, 2], cov[i, 0], cov[i, 1], cov[i, 2],
         cov[i, 3], cov[i, 4], cov[i, 5], cmean[i, 0], cmean[i, 1], cmean[i, 2], ccov[i, 0],
         ccov[i, 1], ccov[i, 2], ccov[i, 3], ccov[i, 4], ccov[i, 5], ccov[i, 6], ccov[i, 7],
-        ccov[i, 8])
+        ccov[i, 8], cvar[i], res2[i])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def store_attributes(v, t, center, bound, extent, position, normal, cone, color, opacity,
-                     area, sigma_r2, lod_cov, color_grad):
+                     area, sigma_r2, lod_cov, color_grad, color_detail):
     """A node's values ``v`` into row t of the attribute arrays (ATTRIBUTES' order)."""
     for d in range(3):
         center[t, d] = v[V_CENTER + d]
@@ -674,6 +729,7 @@ def store_attributes(v, t, center, bound, extent, position, normal, cone, color,
     opacity[t] = v[V_OPACITY]
     area[t] = v[V_AREA]
     sigma_r2[t] = v[V_SIGMA_R2]
+    color_detail[t] = v[V_COLOR_DETAIL]
     for d in range(6):
         lod_cov[t, d] = v[V_LOD_COV + d]
         color_grad[t, d] = v[V_COLOR_GRAD + d]
@@ -682,7 +738,7 @@ def store_attributes(v, t, center, bound, extent, position, normal, cone, color,
 @numba.njit(cache=True, nogil=True)
 def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, alpha,
                center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
-               lod_cov, color_grad):
+               lod_cov, color_grad, color_detail):
     """Fill the node arrays, children before parents (reverse preorder); each node's sphere
     (center, extent) is there already (``_node_spheres``)."""
     m_nodes = count.shape[0]
@@ -694,22 +750,26 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
     # area-weighted mean colour and colour-position covariance (channel x world axis)
     cmean = np.empty((m_nodes, 3), np.float64)
     ccov = np.empty((m_nodes, 9), np.float64)
+    cvar = np.empty(m_nodes, np.float64)  # the colour's variance, channels summed
+    res2 = np.empty(m_nodes, np.float64)  # its mean square about the node's linear fit
     for i in range(m_nodes - 1, -1, -1):
         m = count[i]
         if m == 1:
             v = _surfel_leaf(order[start[i]], positions, normals, ru, rv, weight, colors, alpha)
         else:
             v = _combine(_load(i + 1, center, bound, extent, position, normal, cone, color,
-                               opacity, area, sigma_r2, lod_cov, color_grad, geo, mean, cov,
-                               cmean, ccov),
+                               opacity, area, sigma_r2, lod_cov, color_grad, color_detail, geo,
+                               mean, cov, cmean, ccov, cvar, res2),
                          _load(i + 2 * (m // 2), center, bound, extent, position, normal, cone,
-                               color, opacity, area, sigma_r2, lod_cov, color_grad, geo, mean,
-                               cov, cmean, ccov),
+                               color, opacity, area, sigma_r2, lod_cov, color_grad, color_detail,
+                               geo, mean, cov, cmean, ccov, cvar, res2),
                          np.float64(center[i, 0]), np.float64(center[i, 1]),
                          np.float64(center[i, 2]), np.float64(extent[i]), True)
         store_attributes(v, i, center, bound, extent, position, normal, cone, color, opacity,
-                         area, sigma_r2, lod_cov, color_grad)
+                         area, sigma_r2, lod_cov, color_grad, color_detail)
         geo[i] = v[V_GEO]
+        cvar[i] = v[V_CVAR]
+        res2[i] = v[V_RES2]
         for d in range(3):
             mean[i, d] = v[V_MEAN + d]
             cmean[i, d] = v[V_CMEAN + d]
@@ -737,7 +797,8 @@ def small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, f
     """The values (``_combine``'s tuple) of the node of m surfels (m = 2 or 3)
     whose first leaf is s, which the tree does not store: computed as ``build_hierarchy``
     computes a node, by the same functions on its subtree, so bit for bit what the build
-    would have stored. full=False leaves out the colour, opacity, gradient and cone."""
+    would have stored. full=False leaves out the colour, opacity, gradient, its residual and
+    the cone."""
     if m == 2:
         return _pair(s, order, positions, normals, ru, rv, weight, colors, alpha, full)
     # three surfels: a leaf (the first) and a pair, split as push_children splits
@@ -754,7 +815,8 @@ def attribute_rows(n):
     f32 = np.float32
     return (np.empty((n, 3), f32), np.empty(n, f32), np.empty(n, f32), np.empty((n, 3), f32),
             np.empty((n, 3), f32), np.empty(n, f32), np.empty((n, 3), f32), np.empty(n, f32),
-            np.empty(n, f32), np.empty(n, f32), np.empty((n, 6), f32), np.empty((n, 6), f32))
+            np.empty(n, f32), np.empty(n, f32), np.empty((n, 6), f32), np.empty((n, 6), f32),
+            np.empty(n, f32))
 
 
 EXPAND_CHUNK = 4096  # nodes per task of _expand
@@ -763,8 +825,9 @@ EXPAND_CHUNK = 4096  # nodes per task of _expand
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _expand(nodes, start, count, rows, order, positions, normals, ru, rv, weight, colors,
             alpha, center, bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
-            lod_cov, color_grad, o_center, o_bound, o_extent, o_position, o_normal, o_cone,
-            o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad):
+            lod_cov, color_grad, color_detail, o_center, o_bound, o_extent, o_position, o_normal,
+            o_cone, o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad,
+            o_color_detail):
     """Row t of the o_ arrays = inner node nodes[t]: its stored row, or ``small_node``'s."""
     n = nodes.shape[0]
     for c in numba.prange((n + EXPAND_CHUNK - 1) // EXPAND_CHUNK):
@@ -776,9 +839,10 @@ def _expand(nodes, start, count, rows, order, positions, normals, ru, rv, weight
                                colors, alpha, True)[:V_GEO]
             else:
                 v = load_attributes(r, center, bound, extent, position, normal, cone, color,
-                                    opacity, area, sigma_r2, lod_cov, color_grad)
+                                    opacity, area, sigma_r2, lod_cov, color_grad, color_detail)
             store_attributes(v, t, o_center, o_bound, o_extent, o_position, o_normal, o_cone,
-                             o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad)
+                             o_color, o_opacity, o_area, o_sigma_r2, o_lod_cov, o_color_grad,
+                             o_color_detail)
 
 
 @numba.njit(cache=True, nogil=True)

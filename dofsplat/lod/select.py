@@ -12,7 +12,9 @@ A node is selected when
   (``ewa.screen_lod_variance``) and C_min the smallest circle of confusion over the
   node's depth range. kappa = 1 is the paper's rule; a smaller kappa stops one level lower
   (kappa = 1/2: 1.35-1.7 x the fragments, 0.1-2 dB closer to the reference in
-  bench/paper.py's Figure 6).
+  bench/paper.py's Figure 6). A node with texture at its own scale (``color_detail``
+  above ``color_tol``) stops lower still: kappa is scaled by ``detail_factor``
+  (docs/maths.md, "A finer cut where the texture needs it").
   Then circumellipse(J V^{q,l} J^T, V^I) = V^I: the node's resampling kernel is exactly the
   no-LOD DOF kernel of eq. 11, rasterised from one splat instead of many (PAPER_NOTES §4);
 * or it is smaller than the pixel threshold (QSplat's stop): its level basis V^l = V^r + V^q,
@@ -33,7 +35,7 @@ import math
 import numba
 import numpy as np
 
-from .hierarchy import (V_COLOR_GRAD, attribute_rows, node_height, push_children,
+from .hierarchy import (SMALL_NODE, V_COLOR_GRAD, attribute_rows, node_height, push_children,
                         small_node, store_attributes, stored_nodes)
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, tangent_from_normal)
@@ -45,12 +47,31 @@ STACK = 96  # the median split keeps depth <= ceil(log2 N) + 1, far below this
 # worth it only for nodes that would save a sizeable subtree; the surfels of small ones are
 # culled exactly, one by one, by the projection
 CULL_TEST_MIN_COUNT = 32
+# a node with texture at its own scale stops at kappa x max(DETAIL_FLOOR,
+# sqrt(color_tol / color_detail)) (docs/maths.md, "A finer cut where the texture needs it")
+DETAIL_FLOOR = 0.3
 
 
 @shared
-def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov, view,
-               ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-               thr2, kappa, cull_backfaces):
+def detail_factor(detail, m, color_tol):
+    """The factor on a node's DOF stop for its texture at its own scale, ``detail``
+    (``Hierarchy.color_detail``): 1 up to ``color_tol``, then sqrt(color_tol / detail), at
+    least DETAIL_FLOOR; 1 for nodes of at most SMALL_NODE surfels (which a compact tree
+    does not store: both trees cut alike) and for color_tol = inf.
+
+    Why the square root: a zero-mean texture of the node's size under the blur keeps
+    about (node variance / blur variance)^2 of its amplitude, so the node's error,
+    detail x (lambda / V)^2, stays under color_tol x kappa^2 (chosen on the fidelity
+    suite against a plain threshold and a linear factor)."""
+    if m <= SMALL_NODE or detail <= color_tol:
+        return 1.0
+    return max(DETAIL_FLOOR, math.sqrt(color_tol / detail))
+
+
+@shared
+def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
+               color_detail, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+               thr2, kappa, color_tol, cull_backfaces):
     """CULL, SELECT or DESCEND for a node of m surfels whose attributes are row r of the
     given arrays (the tree's stored row, ``Hierarchy.row``; or a node the tree does not
     store, put in row 0 of arrays of its own; see the module docstring)."""
@@ -135,7 +156,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
         if inv_focus > 0.0 and u_lo <= 1.0 / inv_focus <= u_hi:
             return DESCEND  # the focal plane runs through the node
         coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
-        if lam_q <= kappa * dof_variance(coc_min):
+        if lam_q <= kappa * detail_factor(np.float64(color_detail[r]), m, color_tol) \
+                * dof_variance(coc_min):
             return SELECT
     return DESCEND
 
@@ -143,7 +165,7 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
 @numba.njit(cache=True, nogil=True)
 def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, small, model,
           view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-          cull_backfaces, flags, pending, n_pending):
+          color_tol, cull_backfaces, flags, pending, n_pending):
     """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
     given): flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth
     that need a visit are appended to ``pending`` (rows of node, first leaf, count, row)
@@ -155,10 +177,10 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
     child: s, m // 2; right child: s + m // 2, m - m // 2; the tree's shape depends on N
     alone), and so does a stored node's row (left child: the parent's + 1; right child:
     that + the left subtree's stored nodes)."""
-    center, bound, extent, position, normal, cone, sigma_r2, lod_cov = tree
+    center, bound, extent, position, normal, cone, sigma_r2, lod_cov, color_detail = tree
     order, positions, normals, ru, rv, weight, colors, alpha = model
     # where a small node is put to be visited as a stored row (row 0)
-    w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11 = attribute_rows(1)
+    w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12 = attribute_rows(1)
     stack = np.empty((STACK, 5), np.int64)  # node, first leaf, count, depth, row
     stack[0, 0] = root
     stack[0, 1] = root_start
@@ -181,14 +203,14 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
             continue
         if m > small:
             what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
-                              lod_cov, view, ax, bx, ay, by, near, width, height, coc_k,
-                              inv_focus, cutoff, thr2, kappa, cull_backfaces)
+                              lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
+                              coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
         else:
             v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
-            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11)
-            what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, view, ax, bx, ay, by,
+            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
+            what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, w12, view, ax, bx, ay, by,
                               near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                              cull_backfaces)
+                              color_tol, cull_backfaces)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
@@ -201,25 +223,25 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k,
-                 inv_focus, cutoff, thr2, kappa, cull_backfaces, flags):
+                 inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
     node whose children were visited, and 0 for the rest (below a selected or culled node).
     ``cut_nodes`` reads the cut from the flags.
 
     tree: the hierarchy's (center, bound, extent, position, normal, cone, sigma_r2,
-    lod_cov), and its ``small``; model: the surfels' (order (the tree's), positions,
+    lod_cov, color_detail), and its ``small``; model: the surfels' (order (the tree's), positions,
     normals, r_u, r_v, weight, colors, opacity), for the nodes the tree does not store
     (``small_node``)."""
     flags[:] = 0
     pending = np.empty((1 << (SPLIT_DEPTH + 1), 4), np.int64)
     n_pending = _walk(0, 0, n_surfels, 0, 0, SPLIT_DEPTH - 1, tree, small, model, view, ax,
                       bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                      cull_backfaces, flags, pending, 0)
+                      color_tol, cull_backfaces, flags, pending, 0)
     dummy = np.empty((1, 4), np.int64)
     for t in numba.prange(n_pending):
         _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], 0, STACK, tree, small,
               model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-              kappa, cull_backfaces, flags, dummy, 0)
+              kappa, color_tol, cull_backfaces, flags, dummy, 0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -326,7 +348,7 @@ def gather_splats(rows, order, start, count, position, normal, color, opacity, a
     n = rows.shape[0]
     rv = s_rv if s_rv.shape[0] > 0 else s_ru  # small_node reads r_v for round surfels too
     for c in numba.prange((n + GATHER_CHUNK - 1) // GATHER_CHUNK):
-        w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11 = attribute_rows(1)
+        w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12 = attribute_rows(1)
         for t in range(c * GATHER_CHUNK, min(n, (c + 1) * GATHER_CHUNK)):
             r = rows[t]
             if r >= 0 or count[t] == 1:
@@ -337,7 +359,7 @@ def gather_splats(rows, order, start, count, position, normal, color, opacity, a
                 continue
             v = small_node(start[t], count[t], order, s_pos, s_nrm, s_ru, rv, s_weight, s_col,
                            s_alpha, True)
-            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11)
+            store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
             gather_splat(t, 0, order, start, count, w3, w4, w6, w7, w8, w9, w10, s_pos,
                          s_nrm, s_col, s_alpha, s_tan, s_ru, s_rv, s_weight, out_pos, out_nrm,
                          out_col, out_alpha, out_tan, out_ru, out_rv, out_area, out_cov,
