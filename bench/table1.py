@@ -100,7 +100,7 @@ def psnr(a, b) -> float:
     return math.inf if mse == 0 else 10 * math.log10(1 / mse)
 
 
-def table(name, surfels, camera, lens, repeat, records, kappa):
+def table(name, surfels, camera, lens, repeat, records, lod_options):
     small, large = APERTURES["lion" if name.startswith("lion") else "plane"]
     t = time.perf_counter()
     tree = build_hierarchy(surfels)
@@ -113,7 +113,7 @@ def table(name, surfels, camera, lens, repeat, records, kappa):
     results = {}
     for aperture, lod in rows:
         this = ds.ThinLens(focus_distance=lens.focus_distance, aperture=aperture) if aperture else None
-        settings = ds.RenderSettings(cutoff=2.5, lod=lod, lod_blur_fraction=kappa)
+        settings = ds.RenderSettings(cutoff=2.5, lod=lod, **lod_options)
         ms, st, res = time_frames(surfels, camera, this, settings, tree if lod else None, repeat)
         results[(aperture, lod)] = (ms, st, res)
     base = results[(0.0, False)][0]
@@ -135,13 +135,13 @@ def table(name, surfels, camera, lens, repeat, records, kappa):
     return tree
 
 
-def sweep(name, surfels, camera, lens, tree, repeat, scale, kappa):
+def sweep(name, surfels, camera, lens, tree, repeat, scale, lod_options):
     out = []
     for a in SWEEP:
         aperture = a * scale
         this = ds.ThinLens(focus_distance=lens.focus_distance, aperture=aperture) if aperture else None
         for lod in (True, False):
-            ms, st, _ = time_frames(surfels, camera, this, ds.RenderSettings(lod=lod, lod_blur_fraction=kappa),
+            ms, st, _ = time_frames(surfels, camera, this, ds.RenderSettings(lod=lod, **lod_options),
                                     tree if lod else None, repeat)
             out.append({"scene": name, "aperture": aperture, "lod": lod, "ms": ms,
                         "fragments": st["fragments"], "splats": st["splats_rendered"]})
@@ -213,8 +213,15 @@ def main(argv=None):
                     default=ds.RenderSettings.lod_blur_fraction,
                     help="LOD's stop (RenderSettings.lod_blur_fraction; default the "
                          "renderer's, 0.35; 1 is the paper's rule)")
+    ap.add_argument("--lod-color-tolerance", type=float,
+                    default=ds.RenderSettings.lod_color_tolerance,
+                    help="the finer cut for textured nodes (RenderSettings."
+                         "lod_color_tolerance; default the renderer's, 0.02; inf: off)")
     args = ap.parse_args(argv)
-    print(f"LOD stop: lod_blur_fraction = {args.lod_blur_fraction:g}")
+    lod_options = {"lod_blur_fraction": args.lod_blur_fraction,
+                   "lod_color_tolerance": args.lod_color_tolerance}
+    print(f"LOD stop: lod_blur_fraction = {args.lod_blur_fraction:g}, "
+          f"lod_color_tolerance = {args.lod_color_tolerance:g}")
     print(f"machine: {machine()}")
     scenes = []
     names = args.scenes.split(",")
@@ -233,10 +240,10 @@ def main(argv=None):
             ap.error(f"unknown scene {name}")
     records, sweeps = [], []
     for name, surfels, camera, lens, scale in scenes:
-        tree = table(name, surfels, camera, lens, args.repeat, records, args.lod_blur_fraction)
+        tree = table(name, surfels, camera, lens, args.repeat, records, lod_options)
         if args.plot:
             sweeps += sweep(name, surfels, camera, lens, tree, max(1, args.repeat // 2), scale,
-                            args.lod_blur_fraction)
+                            lod_options)
     if "dragon-tree" in names:
         if DRAGON.exists():
             hierarchy_costs(DRAGON)
@@ -248,6 +255,9 @@ def main(argv=None):
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": machine(),
                                                "lod_blur_fraction": args.lod_blur_fraction,
+                                               "lod_color_tolerance": (
+                                                   None if math.isinf(args.lod_color_tolerance)
+                                                   else args.lod_color_tolerance),
                                                "table": records, "sweep": sweeps}, indent=1))
 
 

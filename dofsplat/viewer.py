@@ -6,7 +6,8 @@ page's background image, with its depth so that viser's own overlays sit in it. 
 browser tab (a viser client) has its own controls and one render thread:
 
 * while the camera moves, frames are rendered at a quarter of the resolution (and the LOD
-  cut that goes with it, at the paper's coarser stop, ``MOVING_LOD_BLUR_FRACTION``); when
+  cut that goes with it, at the paper's coarser stop, ``MOVING_LOD_BLUR_FRACTION``, without
+  the finer cut for textured nodes); when
   it has been still for ``SETTLE_S`` the full-resolution
   frame follows (``Refinement``); only the latest camera is ever rendered, never a queue;
 * a click on the model sets "Focus distance" to the depth seen under the cursor in the last
@@ -279,10 +280,12 @@ class _Session:
                            show_lod=bool(self.show_lod.value) and bool(self.lod.value))
         if kind == "low":
             # while the camera moves: the paper's coarser LOD stop, 1.4-2.1x cheaper at a
-            # large blur (docs/maths.md, "The stop's margin"); the still frame keeps the
+            # large blur (docs/maths.md, "The stop's margin"), and no finer cut for textured
+            # nodes ("A finer cut where the texture needs it"); the still frame keeps the
             # settings' own
             settings = replace(settings, lod_blur_fraction=max(settings.lod_blur_fraction,
-                                                               MOVING_LOD_BLUR_FRACTION))
+                                                               MOVING_LOD_BLUR_FRACTION),
+                               lod_color_tolerance=math.inf)
         return camera, lens, settings
 
     # the render thread

@@ -237,4 +237,6 @@ def test_moving_frames_use_the_papers_lod_stop():
     camera, _, still = session.current("high")
     assert moving.lod_blur_fraction == MOVING_LOD_BLUR_FRACTION == 1.0
     assert still.lod_blur_fraction == ds.RenderSettings().lod_blur_fraction == 0.35
+    assert moving.lod_color_tolerance == math.inf
+    assert still.lod_color_tolerance == ds.RenderSettings().lod_color_tolerance == 0.02
     assert (camera.width, camera.height) == (400, 300)
