@@ -326,11 +326,11 @@ def aperture_mass_reference(W, radius, mix, blades, moments, angles=None):
             rad = abs(radius) * math.cos(math.pi / len(blades)) / np.max(n @ blades.T, axis=1)
         b = rad * s
         grid = np.linspace(0, B_MAX, TABLE_B)
-        plateau = moments[-1, 2]  # the table's first column: T beyond u = -B_MAX
-        i0 = np.where(b >= B_MAX, moments[-1, 0] + plateau * (b - B_MAX),
-                      np.interp(b, grid, moments[:, 0]))
-        i1 = np.where(b >= B_MAX, moments[-1, 1] - plateau * (b * b - B_MAX ** 2) / 2,
-                      np.interp(b, grid, moments[:, 1]))
+        m = moments[:TABLE_B]  # the moments' rows (the mass table follows them)
+        plateau = m[-1, 2]  # the table's first column: T beyond u = -B_MAX
+        i0 = np.where(b >= B_MAX, m[-1, 0] + plateau * (b - B_MAX), np.interp(b, grid, m[:, 0]))
+        i1 = np.where(b >= B_MAX, m[-1, 1] - plateau * (b * b - B_MAX ** 2) / 2,
+                      np.interp(b, grid, m[:, 1]))
         return (i1 + b * i0) / s ** 2
 
     def unit(a):

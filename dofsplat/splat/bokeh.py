@@ -53,6 +53,13 @@ shared_inline = numba.njit(cache=True, nogil=True, inline="always")
 B_MAX = 8.0  # disc radius in Gaussian sigmas beyond which the edge profile no longer changes
 TABLE_B = 65  # columns over b in [0, B_MAX]
 TABLE_U = 321  # rows over u in [-B_MAX, sqrt(2c)]
+# a disc kernel's mass as a table (``aperture_mass``): rows over ln(l2 / l1), W's eigenvalue
+# ratio, from ln(MASS_E_MIN) to 0; columns over v = sigma / (sigma + R), sigma^2 = tr W / 2,
+# from 0 (a disc far wider than the Gaussian) to 1 (the Gaussian)
+MASS_E = 49
+MASS_V = 65
+MASS_E_MIN = 1.0 / 1024.0  # more elongated kernels (grazing splats) take the quadrature
+MASS_TABLE_ANGLES = 128  # directions per family of the quadrature that builds the table
 
 _TABLES: dict = {}
 
@@ -83,9 +90,14 @@ def aperture_table(cutoff: float) -> np.ndarray:
 
 
 def aperture_moments(cutoff: float) -> np.ndarray:
-    """(TABLE_B, 3) float64: I0(b) = int T(u, b) du and I1(b) = int T(u, b) u du over
-    u in [-b, sqrt(2c)] (r >= 0), per column b of ``aperture_table``, and T(-B_MAX, b): a
-    kernel's mass along a direction is (I1 + b I0) / s^2 (``aperture_mass``)."""
+    """(TABLE_B + MASS_E, MASS_V) float64, two tables in one array (one argument for the
+    kernels of both backends):
+
+    * rows [0, TABLE_B), columns 0-2: I0(b) = int T(u, b) du and I1(b) = int T(u, b) u du
+      over u in [-b, sqrt(2c)] (r >= 0), per column b of ``aperture_table``, and
+      T(-B_MAX, b): a kernel's mass along a direction is (I1 + b I0) / s^2;
+    * rows [TABLE_B, TABLE_B + MASS_E): a disc kernel's mass over pi (R^2 + 2 sqrt|W|) by
+      W's eigenvalue ratio and sigma / (sigma + R) (``aperture_mass``; ``mass_table``)."""
     key = ("moments", float(cutoff))
     moments = _TABLES.get(key)
     if moments is None:
@@ -93,8 +105,8 @@ def aperture_moments(cutoff: float) -> np.ndarray:
         u_c = math.sqrt(2.0 * cutoff)
         u = np.linspace(-B_MAX, u_c, TABLE_U)
         b = np.linspace(0.0, B_MAX, TABLE_B)
-        moments = np.zeros((TABLE_B, 3))
-        moments[:, 2] = table[:, 0]
+        moments = np.zeros((TABLE_B + MASS_E, MASS_V))
+        moments[:TABLE_B, 2] = table[:, 0]
         fine = np.linspace(0.0, 1.0, 4001)
         trapezoid = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 has only trapz
         for k in range(TABLE_B):
@@ -102,6 +114,7 @@ def aperture_moments(cutoff: float) -> np.ndarray:
             t = np.interp(uu, u, table[k])
             moments[k, 0] = trapezoid(t, uu)
             moments[k, 1] = trapezoid(t * uu, uu)
+        mass_table(moments)
         moments = np.ascontiguousarray(moments)
         _TABLES[key] = moments
     return moments
@@ -337,6 +350,58 @@ def mass_direction(nx, ny, radius, c11, c12, c22, w11, w12, w22, sqrt_det, mix, 
 # positive definite and s > 0, so none can divide by zero) the loop pipelines
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def aperture_mass(radius, w11, w12, w22, mix, normals, moments):
+    """The integral of ``aperture_kernel`` over the plane (pixels^2). A disc's is read from
+    a table (``mass_table``): the kernel scales with W and R together (x -> k x, W -> k^2 W,
+    R -> k R multiplies the mass by k^2) and a disc turns with W, so its mass is
+    pi (R^2 + 2 sqrt|W|) H(l2 / l1, sigma / (sigma + R)), l1 >= l2 W's eigenvalues and
+    sigma^2 = tr W / 2; H is smooth, bilinear in (ln(l2 / l1), sigma / (sigma + R)) on a
+    49 x 65 grid (within 1e-4 of the quadrature it is built from, tests/test_bokeh.py). A
+    polygon (which does not turn with W) and a kernel more elongated than 1 / MASS_E_MIN
+    take the quadrature (``aperture_mass_quadrature``)."""
+    if normals.shape[0] == 0:
+        half_tr = 0.5 * (w11 + w22)
+        d = math.sqrt(0.25 * (w11 - w22) * (w11 - w22) + w12 * w12)
+        l1, l2 = half_tr + d, half_tr - d
+        if l2 >= MASS_E_MIN * l1:
+            r = abs(radius)
+            sigma = math.sqrt(half_tr)
+            fe = (math.log(l2 / l1) / math.log(MASS_E_MIN)) * (MASS_E - 1)  # 0 at l2 = l1
+            ie = min(int(fe), MASS_E - 2)
+            te = fe - ie
+            fv = sigma / (sigma + r) * (MASS_V - 1)
+            iv = min(int(fv), MASS_V - 2)
+            tv = fv - iv
+            row0, row1 = TABLE_B + ie, TABLE_B + ie + 1
+            h0 = moments[row0, iv] + tv * (moments[row0, iv + 1] - moments[row0, iv])
+            h1 = moments[row1, iv] + tv * (moments[row1, iv + 1] - moments[row1, iv])
+            return (h0 + te * (h1 - h0)) * math.pi * (r * r + 2.0 * math.sqrt(l1 * l2))
+    return aperture_mass_quadrature(radius, w11, w12, w22, mix, normals, moments, MASS_ANGLES)
+
+
+def mass_table(moments: np.ndarray) -> None:
+    """Fill ``aperture_moments``' mass rows from its moment rows: H(e, v) = the quadrature's
+    mass of W = diag(1, e), R = sigma (1 / v - 1), over pi (R^2 + 2 sqrt(e)), with
+    MASS_TABLE_ANGLES directions per family; row TABLE_B + k holds e = MASS_E_MIN^(k /
+    (MASS_E - 1)), column j v = j / (MASS_V - 1) (v = 0, a disc infinitely wider than the
+    Gaussian, is taken at v = 1e-4)."""
+    _fill_mass_table(moments, np.zeros((0, 2)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_mass_table(moments, no_blades):
+    for k in range(MASS_E):
+        e = MASS_E_MIN ** (k / (MASS_E - 1))
+        sigma = math.sqrt(0.5 * (1.0 + e))
+        for j in range(MASS_V):
+            v = max(j / (MASS_V - 1), 1e-4)
+            r = sigma * (1.0 / v - 1.0)
+            m = aperture_mass_quadrature(r, 1.0, 0.0, e, edge_mix(r, 1.0, e), no_blades,
+                                         moments, MASS_TABLE_ANGLES)
+            moments[TABLE_B + k, j] = m / (math.pi * (r * r + 2.0 * math.sqrt(e)))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def aperture_mass_quadrature(radius, w11, w12, w22, mix, normals, moments, mass_angles):
     """The integral of ``aperture_kernel`` over the plane (pixels^2): int f(theta) dtheta
     with f = (I1(b) + b I0(b)) / s^2 along each direction (``aperture_moments``).
 
@@ -360,7 +425,7 @@ def aperture_mass(radius, w11, w12, w22, mix, normals, moments):
     plateau = moments[TABLE_B - 1, 2]
     # f and the densities are the same at n and -n for a centrally symmetric aperture (a
     # disc, an even polygon): half the directions of each family, counted twice
-    family = MASS_ANGLES if normals.shape[0] == 0 else 2 * MASS_ANGLES  # a polygon has corners
+    family = mass_angles if normals.shape[0] == 0 else 2 * mass_angles  # a polygon has corners
     angles = family // 2 if normals.shape[0] % 2 == 0 else family
     step = 2.0 * math.pi / family
     cs, sn = math.cos(step), math.sin(step)
