@@ -157,7 +157,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
         if radius != 0:
             floor = 0.0
-            total = aperture_mass_reference(W, radius, mix, blades, moments)
+            total = aperture_mass_table_reference(W, radius, mix, blades, moments)
         elif settings.exact_normalization and (x1 - x0 + 1) * (y1 - y0 + 1) <= EXACT_NORMALISATION_MAX_AREA:
             q = _exponents(m, Wi, x0, x1, y0, y1)
             total = float((np.exp(-q[q < c]) - floor).sum())
@@ -349,6 +349,29 @@ def aperture_mass_reference(W, radius, mix, blades, moments, angles=None):
         g = np.einsum("ki,ij,kj->k", n, Wi, n)
         total += np.sum(2 * math.pi * f(n) / (1 + 1 / (math.sqrt(np.linalg.det(W)) * g)))
     return float(total / family)
+
+
+def aperture_mass_table_reference(W, radius, mix, blades, moments):
+    """bokeh.aperture_mass in numpy: a disc's mass read from the table in ``moments``' rows
+    past TABLE_B (bokeh.mass_table), by W's eigenvalues from numpy's eigvalsh and a
+    bilinear interpolation in (ln(l2 / l1) / ln(MASS_E_MIN), sigma / (sigma + R)) written
+    out again; a polygon, or a kernel more elongated than 1 / MASS_E_MIN, by the quadrature
+    (``aperture_mass_reference``)."""
+    from .splat.bokeh import MASS_E, MASS_E_MIN, MASS_V, TABLE_B
+
+    l2, l1 = np.linalg.eigvalsh(np.asarray(W, float))
+    if len(blades) or l2 < MASS_E_MIN * l1:
+        return aperture_mass_reference(W, radius, mix, blades, moments)
+    r = abs(radius)
+    sigma = math.sqrt((l1 + l2) / 2)
+    x = math.log(l2 / l1) / math.log(MASS_E_MIN) * (MASS_E - 1)
+    y = sigma / (sigma + r) * (MASS_V - 1)
+    i, j = min(int(x), MASS_E - 2), min(int(y), MASS_V - 2)
+    a, b = x - i, y - j
+    H = moments[TABLE_B:TABLE_B + MASS_E, :MASS_V]
+    h = ((1 - a) * ((1 - b) * H[i, j] + b * H[i, j + 1])
+         + a * ((1 - b) * H[i + 1, j] + b * H[i + 1, j + 1]))
+    return float(h * math.pi * (r * r + 2 * math.sqrt(l1 * l2)))
 
 
 def merge_fraction_reference(d_front, d_back, opacity_front, merge):
