@@ -548,7 +548,7 @@ def _surfel_leaf(k, positions, normals, ru, rv, weight, colors, alpha):
 def _combine(L, R, cx, cy, cz, extent, full):
     """A node's values from its children's, L and R, and its sphere (``_sphere``: centre
     and extent, as stored). full=False leaves out (as zeros) what the selection does not
-    read: the colour, opacity, colour gradient, its residual and the normal cone."""
+    read: the colour, opacity, colour gradient, colour detail and the normal cone."""
     al, ar = L[V_AREA], R[V_AREA]
     a = al + ar
     # area-weighted means; equal weights if both children carry no area
@@ -797,8 +797,8 @@ def small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, f
     """The values (``_combine``'s tuple) of the node of m surfels (m = 2 or 3)
     whose first leaf is s, which the tree does not store: computed as ``build_hierarchy``
     computes a node, by the same functions on its subtree, so bit for bit what the build
-    would have stored. full=False leaves out the colour, opacity, gradient, its residual and
-    the cone."""
+    would have stored. full=False leaves out the colour, opacity, gradient, colour detail
+    and the cone."""
     if m == 2:
         return _pair(s, order, positions, normals, ru, rv, weight, colors, alpha, full)
     # three surfels: a leaf (the first) and a pair, split as push_children splits
