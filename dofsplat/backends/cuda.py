@@ -268,7 +268,7 @@ def _project(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, vi
     k = cuda.grid(1)
     if k < positions.shape[0]:
         _project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                       ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+                       (ax, bx, ay, by), near, width, height, coc_k, inv_focus, cutoff, z_margin,
                        cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox,
                        visible)
 

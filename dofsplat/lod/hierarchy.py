@@ -544,7 +544,10 @@ def _surfel_leaf(k, positions, normals, ru, rv, weight, colors, alpha):
                         np.float64(alpha[k]))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+# not inlined at numba's level, nor is small_node: inlined into every walk and gather, their
+# tuples of N_VALUES took numba 80 s to compile (bench/RESULTS.md, "The first run"); the
+# calls cost the compact tree's selection 1.1-1.25 x
+@numba.njit(cache=True, nogil=True)
 def _combine(L, R, cx, cy, cz, extent, full):
     """A node's values from its children's, L and R, and its sphere (``_sphere``: centre
     and extent, as stored). full=False leaves out (as zeros) what the selection does not
@@ -792,7 +795,7 @@ def _pair(s, order, positions, normals, ru, rv, weight, colors, alpha, full):
                     _f32(cx), _f32(cy), _f32(cz), _f32(rad), full)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)  # not inlined: see _combine
 def small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, full):
     """The values (``_combine``'s tuple) of the node of m surfels (m = 2 or 3)
     whose first leaf is s, which the tree does not store: computed as ``build_hierarchy``

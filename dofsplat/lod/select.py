@@ -38,7 +38,7 @@ import numpy as np
 from .hierarchy import (SMALL_NODE, V_COLOR_GRAD, attribute_rows, node_height, push_children,
                         small_node, store_attributes, stored_nodes)
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
-                         screen_lod_variance, shared, tangent_from_normal)
+                         screen_lod_variance, shared, shared_inline, tangent_from_normal)
 
 CULL, SELECT, DESCEND = 3, 1, 2  # also the flags of select_nodes (0: not visited)
 SPLIT_DEPTH = 10  # 1024 subtrees for the parallel walk
@@ -68,7 +68,7 @@ def detail_factor(detail, m, color_tol):
     return max(DETAIL_FLOOR, math.sqrt(color_tol / detail))
 
 
-@shared
+@shared_inline
 def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
                color_detail, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
                thr2, kappa, color_tol, cull_backfaces):
@@ -201,16 +201,15 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
         if m == 1:
             flags[i] = SELECT  # a leaf: its surfel (visit_node's first rule)
             continue
-        if m > small:
-            what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
-                              lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
-                              coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
-        else:
+        # one call site: visit_node is inlined, and a second copy doubled the compile time
+        row, rows = r, tree
+        if m <= small:
             v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
             store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
-            what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, w12, view, ax, bx, ay, by,
-                              near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                              color_tol, cull_backfaces)
+            row, rows = 0, (w0, w1, w2, w3, w4, w5, w9, w10, w12)
+        what = visit_node(row, m, rows[0], rows[1], rows[2], rows[3], rows[4], rows[5], rows[6],
+                          rows[7], rows[8], view, ax, bx, ay, by, near, width, height, coc_k,
+                          inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
@@ -234,14 +233,19 @@ def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, widt
     (``small_node``)."""
     flags[:] = 0
     pending = np.empty((1 << (SPLIT_DEPTH + 1), 4), np.int64)
-    n_pending = _walk(0, 0, n_surfels, 0, 0, SPLIT_DEPTH - 1, tree, small, model, view, ax,
-                      bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                      color_tol, cull_backfaces, flags, pending, 0)
+    # both calls pass the same types (no literal constants, which numba compiles a
+    # specialisation for): one _walk to compile, not two
+    zero = np.int64(0)
+    pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3] = 0, 0, n_surfels, 0
+    n_pending = _walk(pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3], zero,
+                      np.int64(SPLIT_DEPTH - 1), tree, small, model, view, ax, bx, ay, by, near,
+                      width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
+                      cull_backfaces, flags, pending, zero)
     dummy = np.empty((1, 4), np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], 0, STACK, tree, small,
-              model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2,
-              kappa, color_tol, cull_backfaces, flags, dummy, 0)
+        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], zero, np.int64(STACK),
+              tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
+              cutoff, thr2, kappa, color_tol, cull_backfaces, flags, dummy, zero)
 
 
 @numba.njit(cache=True, nogil=True)

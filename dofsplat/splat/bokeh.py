@@ -348,7 +348,7 @@ def mass_direction(nx, ny, radius, c11, c12, c22, w11, w12, w22, sqrt_det, mix, 
 
 # per splat, on the CPU: without numba's zero-division checks (a branch per division; W is
 # positive definite and s > 0, so none can divide by zero) the loop pipelines
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def aperture_mass(radius, w11, w12, w22, mix, normals, moments):
     """The integral of ``aperture_kernel`` over the plane (pixels^2). A disc's is read from
     a table (``mass_table``): the kernel scales with W and R together (x -> k x, W -> k^2 W,

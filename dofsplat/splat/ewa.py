@@ -16,6 +16,10 @@ import numba
 
 # jitted on first use; cache=True keeps the machine code between processes
 shared = numba.njit(cache=True, nogil=True)
+# the same, inlined into its callers at numba's level: the projection's per-splat functions,
+# which LLVM would otherwise call out of line (a numba call passes every tuple and array
+# through memory and checks a status: 0.6-0.7 x the projection's time inlined, bench/RESULTS.md)
+shared_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 LN4 = math.log(4.0)
 # 1 / (2 ln 4): the L2-best circular Gaussian variance for a uniform disc of radius 1 (eq. after 5.2)
@@ -146,7 +150,7 @@ def circumellipse(m11, m12, m22, r):
     return (l1 * c * c + l2 * s * s, (l1 - l2) * c * s, l1 * s * s + l2 * c * c)
 
 
-@shared
+@shared_inline
 def circumellipse_general(a11, a12, a22, b11, b12, b22):
     """Variance containing both ellipses A and B (B positive definite): circumellipse in B's frame.
 
@@ -168,7 +172,7 @@ def circumellipse_general(a11, a12, a22, b11, b12, b22):
             l21 * l21 * n11 + 2.0 * l21 * l22 * n12 + l22 * l22 * n22)
 
 
-@shared
+@shared_inline
 def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     """Screen-space variance W of the blurred resampling kernel, (w11, w12, w22).
 
@@ -199,7 +203,7 @@ def kernel_variance(j11, j12, j21, j22, su, sv, q11, q12, q22, v_dof):
     return w11 + d11, w12 + d12, w22 + d22
 
 
-@shared
+@shared_inline
 def screen_lod_variance(px, py, pz, cov, view, ax, ay):
     """J V^{q,l} J^T for a world-space filter covariance, and its camera-depth variance.
 
@@ -269,7 +273,7 @@ def exponent(dx, dy, c11, c12, c22):
     return 0.5 * (c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy)
 
 
-@shared
+@shared_inline
 def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by, near,
                    coc_k, inv_focus, lod_cov, cutoff, z_margin, cull_backfaces, disc):
     """Project one surfel; everything but the kernel's pixel sum.
@@ -454,7 +458,7 @@ def column_step(col, c12, c22):
     return q + dqc, dq + c12, e * g, f * step_f, dqc + c22, g * step_g, step_g, step_f
 
 
-@shared
+@shared_inline
 def kernel_pixel_sum(mx, my, c11, c12, c22, cutoff, x0, x1, y0, y1, floor):
     """Sum of exp(-exponent) - floor over all pixel centres inside the truncated kernel
     (unclipped); floor = e^-c tapers the kernel to 0 at its cutoff, 0 keeps the paper's step."""

@@ -62,6 +62,7 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
     n = positions.shape[0]
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
+    screen = (ax, bx, ay, by)
     # blocks of splats in a Weyl order (dofsplat/parallel.py): the tree's order is spatial,
     # and near, wide splats cost most (their exact normalisation sums their pixels)
     n_blocks = (n + PROJECT_BLOCK - 1) // PROJECT_BLOCK
@@ -70,20 +71,24 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
         b = (u * stride) % n_blocks
         for k in range(b * PROJECT_BLOCK, min((b + 1) * PROJECT_BLOCK, n)):
             project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov,
-                          view_t, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
+                          view_t, screen, near, width, height, coc_k, inv_focus, cutoff,
                           z_margin, cull_backfaces, exact_norm, floor, disc, blades, moments,
                           out, bbox, visible)
 
 
-# not inline="always": numba's inliner refuses a function with this many arguments
-# ("Calling a closure with *args"); LLVM inlines the call within the jitted loop anyway
-@numba.njit(cache=True, nogil=True)
+# inlined at numba's level (1.4-1.8 x faster than a call, bench/RESULTS.md). Its arguments
+# stay under 30: past CPython's STACK_USE_GUIDELINE a call is compiled as f(*args), which
+# numba's inliner refuses ("Calling a closure with *args"), and then every array of the
+# call went through memory per splat
+@numba.njit(cache=True, nogil=True, inline="always")
 def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod_cov, view_t,
-                  ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, z_margin,
+                  screen, near, width, height, coc_k, inv_focus, cutoff, z_margin,
                   cull_backfaces, exact_norm, floor, disc, blades, moments, out, bbox, visible):
-    """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, floor:
+    """Splat k of ``project_splats`` (its arguments; view_t: the view as a 12-tuple, screen:
+    (ax, bx, ay, by) of ``Camera.screen_coefficients``, floor:
     e^-c to taper LOD nodes' kernels, else 0; disc: draw the aperture's shape, a polygon of
     ``blades`` (N, 2), the unit normals of its edges, or a disc if (0, 2), and ``bokeh.aperture_moments`` for the kernels' masses). Shared with the CUDA backend, one thread per splat."""
+    ax, bx, ay, by = screen
     n = positions.shape[0]
     elliptical = tangents.shape[0] == n
     has_lod = lod_cov.shape[0] == n
@@ -175,7 +180,8 @@ def slope_splats(positions, normals, color_grad, gain, view, ax, ay, ap_var, out
     radius 1 (``ewa.color_slope``).
 
     A pass of its own: in project_splat's loop the extra arrays cost the projection of every
-    frame 60 % more (bench/RESULTS.md), with or without nodes."""
+    frame 60 % more (bench/RESULTS.md), with or without nodes (they took its call past 30
+    arguments, which numba does not inline: see project_splat)."""
     view_t = (view[0], view[1], view[2], view[3], view[4], view[5], view[6], view[7],
               view[8], view[9], view[10], view[11])
     for k in numba.prange(positions.shape[0]):
