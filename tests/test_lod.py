@@ -250,6 +250,51 @@ def test_a_compact_tree_computes_the_nodes_it_leaves_out_bit_for_bit(kind):
     assert set(ATTRIBUTES) == set(compact.expanded(s))
 
 
+@pytest.mark.parametrize("kind", ["weighted", "unweighted", "elliptical"])
+def test_a_full_tree_gathers_from_its_leaf_ordered_copies(kind):
+    """A full tree's gather reads copies of the surfel arrays in leaf order
+    (``lod.leaf_arrays``): the splats equal those gathered through ``tree.order`` from the
+    surfels' own arrays, bit for bit; a replaced array is copied again, and a compact tree
+    makes no copies."""
+    from dofsplat.lod import gather_cut, leaf_arrays, select_cut
+    from dofsplat.lod.select import gather_splats
+    from dofsplat.splat.source import SplatSource
+
+    s = _sheet(kind)
+    tree = build_hierarchy(s, small=1)
+    cam = ds.Camera(eye=(0.3, -2.0, 1.5), target=(0, 0, 0), width=96, height=72)
+    cut = select_cut(tree, s, cam, 2.0, 0.5, 2.5, 1.0, False, 0.35, 0.02)
+    assert 0 < np.sum(cut[2] == 1) < len(cut[2])  # leaves and inner nodes
+    got = gather_cut(tree, s, cut)
+    order = leaf_arrays(tree, s)[0]
+    assert np.array_equal(order, np.arange(len(s)))
+    nodes, start, count, row = cut
+    n, ell, empty = nodes.size, s.is_elliptical, np.zeros(0, np.float32)
+    want = SplatSource(
+        positions=np.empty((n, 3), np.float32), normals=np.empty((n, 3), np.float32),
+        colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
+        tangents=np.empty((n if ell else 0, 3), np.float32), ru=np.empty(n, np.float32),
+        rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
+        lod_cov=np.empty((n, 6), np.float32), color_grad=np.zeros((n, 6), np.float32),
+        level=np.empty(n, np.int8), material=s.material)
+    gather_splats(row, tree.order, start, count, tree.position, tree.normal, tree.color,
+                  tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov, s.positions,
+                  s.normals, s.colors, s.opacity,
+                  s.tangent if ell else np.zeros((0, 3), np.float32), s.radius,
+                  s.radius_v if ell else empty, s.weight if s.weight is not None else empty,
+                  want.positions, want.normals, want.colors, want.opacity, want.tangents,
+                  want.ru, want.rv, want.area, want.lod_cov, want.level, want.color_grad)
+    for name in ("positions", "normals", "colors", "opacity", "tangents", "ru", "rv", "area",
+                 "lod_cov", "level"):
+        assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), name
+    s.colors = 1.0 - s.colors  # a new array: the copies follow
+    leaves = np.flatnonzero(cut[2] == 1)
+    again = gather_cut(tree, s, cut)
+    assert np.allclose(again.colors[leaves], 1.0 - got.colors[leaves])
+    compact = build_hierarchy(s, small=3)
+    assert leaf_arrays(compact, s)[0] is compact.order
+
+
 @pytest.mark.parametrize("small", [1, 3])
 def test_stored_nodes_counts_a_subtrees_stored_rows(small):
     from dofsplat.lod.hierarchy import stored_nodes, tree_shape

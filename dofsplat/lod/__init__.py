@@ -62,12 +62,39 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
 
 
 def model_arrays(tree: Hierarchy, surfels):
-    """What ``small_node`` reads: (the tree's order, the surfels' positions, normals, r_u,
-    r_v, weights ((0,) without), colours, opacities)."""
-    from .hierarchy import _radii_weight
+    """What ``small_node`` reads: (the leaf order, the surfels' positions, normals, r_u,
+    r_v, weights ((0,) without), colours, opacities), as ``leaf_arrays`` gives them."""
+    order, pos, nrm, col, alpha, _, ru, rv, weight = leaf_arrays(tree, surfels)
+    return order, pos, nrm, ru, rv if rv.shape[0] else ru, weight, col, alpha
 
-    return (tree.order, surfels.positions, surfels.normals, *_radii_weight(surfels),
-            surfels.colors, surfels.opacity)
+
+def leaf_arrays(tree: Hierarchy, surfels):
+    """The surfel arrays that the gather and the walk read, and the leaf order that indexes
+    them: (order, positions, normals, colours, opacities, tangents ((0, 3) for round
+    surfels), r_u, r_v ((0,) for round surfels), weights ((0,) without)).
+
+    For a full tree these are copies in the tree's leaf order, and the order is the
+    identity: a cut's leaves are then read one after the other instead of all over the
+    model (the lion's gather took 9 x as long through ``tree.order``, bench/RESULTS.md).
+    Made on first use and kept on the tree, for the same arrays (``hierarchy_for``: edits
+    in place are not seen). A compact tree (a large model) reads the surfels through
+    ``tree.order``: the copies would cost 44 bytes a surfel."""
+    import numpy as np
+
+    empty = np.zeros(0, np.float32)
+    arrays = (surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
+              surfels.tangent if surfels.is_elliptical else np.zeros((0, 3), np.float32),
+              surfels.radius, surfels.radius_v if surfels.is_elliptical else empty,
+              surfels.weight if surfels.weight is not None else empty)
+    if tree.small != 1:
+        return (tree.order, *arrays)
+    cached = getattr(tree, "_leaf_arrays", None)
+    if cached is None or any(a is not b and (a.size or b.size) for a, b in zip(cached[0], arrays)):
+        n = tree.order.shape[0]
+        copies = tuple(a[tree.order] if a.shape[0] == n else a for a in arrays)
+        cached = (arrays, (np.arange(n, dtype=tree.order.dtype), *copies))
+        tree._leaf_arrays = cached
+    return cached[1]
 
 
 def gather_cut(tree: Hierarchy, surfels, cut):
@@ -81,7 +108,6 @@ def gather_cut(tree: Hierarchy, surfels, cut):
     nodes, start, count, row = cut
     n = nodes.size
     ell = surfels.is_elliptical
-    empty = np.zeros(0, np.float32)
     out = SplatSource(
         positions=np.empty((n, 3), np.float32), normals=np.empty((n, 3), np.float32),
         colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
@@ -90,12 +116,10 @@ def gather_cut(tree: Hierarchy, surfels, cut):
         lod_cov=np.empty((n, 6), np.float32), color_grad=np.empty((n, 6), np.float32),
         level=np.empty(n, np.int8),
         material=surfels.material)
-    gather_splats(row, tree.order, start, count, tree.position, tree.normal,
+    order, pos, nrm, col, alpha, tan, ru, rv, weight = leaf_arrays(tree, surfels)
+    gather_splats(row, order, start, count, tree.position, tree.normal,
                   tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov,
-                  surfels.positions, surfels.normals, surfels.colors, surfels.opacity,
-                  surfels.tangent if ell else np.zeros((0, 3), np.float32), surfels.radius,
-                  surfels.radius_v if ell else empty,
-                  surfels.weight if surfels.weight is not None else empty, out.positions,
+                  pos, nrm, col, alpha, tan, ru, rv, weight, out.positions,
                   out.normals, out.colors, out.opacity, out.tangents, out.ru, out.rv, out.area,
                   out.lod_cov, out.level, out.color_grad)
     # the stored nodes' colour gradients (zero for a surfel) in a pass of their own: two

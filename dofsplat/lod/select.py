@@ -201,15 +201,16 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
         if m == 1:
             flags[i] = SELECT  # a leaf: its surfel (visit_node's first rule)
             continue
-        # one call site: visit_node is inlined, and a second copy doubled the compile time
-        row, rows = r, tree
-        if m <= small:
+        if m > small:
+            what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
+                              lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
+                              coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
+        else:
             v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
             store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
-            row, rows = 0, (w0, w1, w2, w3, w4, w5, w9, w10, w12)
-        what = visit_node(row, m, rows[0], rows[1], rows[2], rows[3], rows[4], rows[5], rows[6],
-                          rows[7], rows[8], view, ax, bx, ay, by, near, width, height, coc_k,
-                          inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
+            what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, w12, view, ax, bx, ay, by,
+                              near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+                              color_tol, cull_backfaces)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
