@@ -62,7 +62,7 @@ def tangent_frame(nx, ny, nz):
     return ux, uy, uz, ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
 
 
-@shared
+@shared_inline
 def color_slope(p_world, n_world, grad, gain, view, ax, ay, w11, w12, w22, radius, ap_var):
     """A node's colour change per pixel, (r_x, r_y, g_x, g_y, b_x, b_y), for its kernel.
 

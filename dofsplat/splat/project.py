@@ -189,7 +189,7 @@ def slope_splats(positions, normals, color_grad, gain, view, ax, ay, ap_var, out
                     visible)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")  # as project_splat
 def slope_splat(k, positions, normals, color_grad, gain, view_t, ax, ay, ap_var, out, visible):
     """Splat k of ``slope_splats``; shared with the CUDA backend, one thread per splat."""
     if not visible[k]:
