@@ -256,9 +256,8 @@ def test_a_full_tree_gathers_from_its_leaf_ordered_copies(kind):
     (``lod.leaf_arrays``): the splats equal those gathered through ``tree.order`` from the
     surfels' own arrays, bit for bit; a replaced array is copied again, and a compact tree
     makes no copies."""
-    from dofsplat.lod import gather_cut, leaf_arrays, select_cut
+    from dofsplat.lod import gather_cut, leaf_arrays, select_cut, splat_buffers
     from dofsplat.lod.select import gather_splats
-    from dofsplat.splat.source import SplatSource
 
     s = _sheet(kind)
     tree = build_hierarchy(s, small=1)
@@ -269,14 +268,8 @@ def test_a_full_tree_gathers_from_its_leaf_ordered_copies(kind):
     order = leaf_arrays(tree, s)[0]
     assert np.array_equal(order, np.arange(len(s)))
     nodes, start, count, row = cut
-    n, ell, empty = nodes.size, s.is_elliptical, np.zeros(0, np.float32)
-    want = SplatSource(
-        positions=np.empty((n, 3), np.float32), normals=np.empty((n, 3), np.float32),
-        colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
-        tangents=np.empty((n if ell else 0, 3), np.float32), ru=np.empty(n, np.float32),
-        rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
-        lod_cov=np.empty((n, 6), np.float32), color_grad=np.zeros((n, 6), np.float32),
-        level=np.empty(n, np.int8), material=s.material)
+    ell, empty = s.is_elliptical, np.zeros(0, np.float32)
+    want = splat_buffers(nodes.size, s)
     gather_splats(row, tree.order, start, count, tree.position, tree.normal, tree.color,
                   tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov, s.positions,
                   s.normals, s.colors, s.opacity,

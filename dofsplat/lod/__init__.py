@@ -12,7 +12,8 @@ from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
 from .select import cut_nodes, gather_gradients, gather_splats, select_nodes
 
 __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
-           "hierarchy_for", "select_cut", "select_splats", "select_nodes"]
+           "hierarchy_for", "leaf_arrays", "select_cut", "select_splats", "select_nodes",
+           "splat_buffers"]
 
 
 def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
@@ -97,25 +98,28 @@ def leaf_arrays(tree: Hierarchy, surfels):
     return cached[1]
 
 
-def gather_cut(tree: Hierarchy, surfels, cut):
-    """The nodes of ``cut`` ((nodes, start, count, row) as ``select_cut`` gives them, or rows
-    of it) as a ``SplatSource``: a leaf is its surfel, an inner node its prefiltered
-    attributes (``gather_splats``)."""
+def splat_buffers(n: int, surfels):
+    """A ``SplatSource`` of n uninitialised rows for ``gather_splats`` to fill (tangents
+    only for elliptical surfels)."""
     import numpy as np
 
     from ..splat.source import SplatSource
 
-    nodes, start, count, row = cut
-    n = nodes.size
-    ell = surfels.is_elliptical
-    out = SplatSource(
+    return SplatSource(
         positions=np.empty((n, 3), np.float32), normals=np.empty((n, 3), np.float32),
         colors=np.empty((n, 3), np.float32), opacity=np.empty(n, np.float32),
-        tangents=np.empty((n if ell else 0, 3), np.float32), ru=np.empty(n, np.float32),
-        rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
+        tangents=np.empty((n if surfels.is_elliptical else 0, 3), np.float32),
+        ru=np.empty(n, np.float32), rv=np.empty(n, np.float32), area=np.empty(n, np.float32),
         lod_cov=np.empty((n, 6), np.float32), color_grad=np.empty((n, 6), np.float32),
-        level=np.empty(n, np.int8),
-        material=surfels.material)
+        level=np.empty(n, np.int8), material=surfels.material)
+
+
+def gather_cut(tree: Hierarchy, surfels, cut):
+    """The nodes of ``cut`` ((nodes, start, count, row) as ``select_cut`` gives them, or rows
+    of it) as a ``SplatSource``: a leaf is its surfel, an inner node its prefiltered
+    attributes (``gather_splats``)."""
+    nodes, start, count, row = cut
+    out = splat_buffers(nodes.size, surfels)
     order, pos, nrm, col, alpha, tan, ru, rv, weight = leaf_arrays(tree, surfels)
     gather_splats(row, order, start, count, tree.position, tree.normal,
                   tree.color, tree.opacity, tree.area, tree.sigma_r2, tree.lod_cov,
