@@ -686,8 +686,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         cnt[:] = 0
         frags = 0
         overflows = 0
-        for e in range(offsets[t], offsets[t + 1]):
-            k = ids[e]
+        for slot in range(offsets[t], offsets[t + 1]):
+            k = ids[slot]
             amp = splats[k, AMP]
             if amp <= 0.0:
                 continue  # hidden by the front pass
@@ -721,7 +721,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     j1 = min(int(math.ceil(mx + hi - 0.5)), x1)
                     ja, jb = max(j0, px0), min(j1, px1)
                     p = (i - py0) * TILE + (ja - px0)
-                    e = (i - ia) * TILE + (ja - px0)
+                    c = (i - ia) * TILE + (ja - px0)  # the pixel's table cell (aperture_rows)
                     dy = i + 0.5 - my
                     # the colour along the row by forward differences, as for a Gaussian
                     dx = ja + 0.5 - mx
@@ -729,8 +729,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     if round_aperture:
                         # a loop of its own, without the polygon's branch: the blurred
                         # frames' raster stage 0.95 x (bench/RESULTS.md)
-                        for e in range(e, e + jb + 1 - ja):
-                            wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
+                        for c in range(c, c + jb + 1 - ja):
+                            wk = table_lerp(cell[c], frac[0, c], frac[1, c], flat)
                             if wk > 0.0:
                                 overflows += insert_fragment(
                                     acc, cnt, p, amp * wk, max(rr, 0.0), max(gg, 0.0),
