@@ -247,8 +247,8 @@ def reference_key(scene: FidelityScene, lens: ds.ThinLens, samples: int) -> str:
               s.weight):
         digest.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
     # the settings a pinhole sample uses: not the LOD's nor the device's
-    skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "show_lod", "device",
-            "max_tile_pairs", "lens_samples"}
+    skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "lod_min_node", "show_lod",
+            "device", "max_tile_pairs", "lens_samples"}
     settings = {k: v for k, v in dataclasses.asdict(scene.settings).items() if k not in skip}
     meta = {"version": REFERENCE_VERSION, "scene": scene.name,
             "size": [scene.camera.width, scene.camera.height], "camera": repr(scene.camera),
@@ -494,6 +494,9 @@ def main(argv=None) -> int:
                     default=ds.RenderSettings.lod_blur_fraction,
                     help="ours' LOD stop (RenderSettings.lod_blur_fraction; default the "
                          "renderer's, 0.35; 1 is the paper's rule)")
+    ap.add_argument("--lod-min-node", type=int, default=ds.RenderSettings.lod_min_node,
+                    help="the smallest node ours' blur may draw (RenderSettings.lod_min_node; "
+                         "default the renderer's, 2: any node)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]
@@ -512,7 +515,8 @@ def main(argv=None) -> int:
         if scene is None:
             continue
         scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples,
-                                             lod_blur_fraction=args.lod_blur_fraction)
+                                             lod_blur_fraction=args.lod_blur_fraction,
+                                             lod_min_node=args.lod_min_node)
         print(f"{name}: {len(scene.surfels):,} surfels, {size[0]}x{size[1]}, N = {samples}; "
               f"{scene.note}", file=sys.stderr)
         scene_rows, frames = measure_scene(scene, samples, repeat, TARGET_COC_PX, cache,
@@ -528,6 +532,7 @@ def main(argv=None) -> int:
               "tile": TILE, "worst_tile_percentile": WORST_TILE_PERCENTILE,
               "reference_version": REFERENCE_VERSION, "load_average": load,
               "lens_samples": args.lens_samples, "lod_blur_fraction": args.lod_blur_fraction,
+              "lod_min_node": args.lod_min_node,
               "run_s": time.perf_counter() - t_start, "scene_s": scene_s, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(_finite(record), indent=1, default=_json_number, allow_nan=False) + "\n"

@@ -22,6 +22,7 @@ from .surfels import Surfels
 
 DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
 RECONSTRUCTIONS = ("soft", "paper")
+MAX_LOD_MIN_NODE = 64  # RenderSettings.lod_min_node: larger would leave LOD little to do
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,7 @@ class RenderSettings:
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
     lod_color_tolerance: float = 0.02  # LOD: a node with more texture at its own scale than this (RMS, linear RGB: Hierarchy.color_detail) is cut finer, down to 0.3 x the blur fraction; inf: off (docs/maths.md, "A finer cut where the texture needs it")
+    lod_min_node: int = 2  # LOD: the blur's stop draws a node of at least this many surfels; a smaller one is drawn as its surfels (4: not the nodes of 2-3 surfels, which carry most of LOD's loss where surfaces cross; docs/maths.md, "The smallest nodes"); 2: any node
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
@@ -75,6 +77,10 @@ class RenderSettings:
         if not (self.lod_color_tolerance >= 0):  # inf allowed (off), nan refused
             raise DofsplatError(f"lod_color_tolerance must be >= 0 (inf: off), got "
                                 f"{self.lod_color_tolerance}")
+        if isinstance(self.lod_min_node, bool) or not isinstance(self.lod_min_node, (int, np.integer)) \
+                or not 2 <= self.lod_min_node <= MAX_LOD_MIN_NODE:
+            raise DofsplatError(f"lod_min_node must be an integer in 2..{MAX_LOD_MIN_NODE}, "
+                                f"got {self.lod_min_node!r}")
         if self.reconstruction not in RECONSTRUCTIONS:
             raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
                                 f"got {self.reconstruction!r}")

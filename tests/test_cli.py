@@ -432,6 +432,27 @@ def test_lod_color_tolerance_off(plane_ply, workdir, capsys):
     assert json.load(open("y.json"))["settings"]["lod_color_tolerance"] == 0.02
 
 
+def test_lod_min_node(plane_ply, workdir, capsys):
+    """--lod-min-node reaches the settings and the stats file; out of 2..64 it is one line
+    of error and no image."""
+    status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--size", SIZE_ARG,
+                               "--lod-min-node", "4", "--stats", "x.json", "--lod-cache", "off"],
+                              capsys)
+    assert status == 0, err
+    assert json.load(open("x.json"))["settings"]["lod_min_node"] == 4
+    for bad in ("1", "65", "two"):
+        status, _, err = run_main(["render", plane_ply, "-o", "y.png", "--lod-min-node", bad],
+                                  capsys)
+        assert_one_line_error(status, err)
+        assert not os.path.exists("y.png")
+    from dofsplat import DofsplatError, RenderSettings
+
+    with pytest.raises(DofsplatError, match="lod_min_node must be an integer in 2..64"):
+        RenderSettings(lod_min_node=1)
+    with pytest.raises(DofsplatError, match="lod_min_node"):
+        RenderSettings(lod_min_node=True)
+
+
 def test_z_up_framing_looks_from_the_front(plane_ply, workdir, capsys):
     """--up 0 0 1 without --eye: the default camera looks along +y (a z-up scan's front)."""
     status, _, err = run_main(["render", plane_ply, "-o", "z.png", "--size", SIZE_ARG, "--up", "0", "0", "1",

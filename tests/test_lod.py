@@ -342,7 +342,7 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
                                     stored.position, stored.normal, stored.cone,
                                     stored.sigma_r2, stored.lod_cov, stored.color_detail),
                  stored.small, model_arrays(stored, s), view, ax, bx, ay, by, 0.01, 160, 120,
-                 coc_k, inv_p, 2.5, 0.0, 1.0, math.inf, True, flags)
+                 coc_k, inv_p, 2.5, 0.0, 1.0, math.inf, 2, True, flags)
     chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
     # cut_nodes reads the same nodes, with the first leaves, counts and rows of the tree
     from dofsplat.lod.select import cut_nodes
@@ -538,6 +538,47 @@ def test_a_textured_node_is_cut_finer():
     assert finer.stats["fragments"] < 1.25 * plain.stats["fragments"]
 
 
+@pytest.mark.parametrize("small", [1, 3])
+def test_the_blurs_stop_draws_no_node_under_lod_min_node(small):
+    """With lod_min_node = 4 the DOF stop selects no node of 2 or 3 surfels: its surfels are
+    drawn instead (the pixel stop is off here, so only the DOF stop selects inner nodes);
+    with 2 (the default) it does select such nodes, so the test can tell. Both tree
+    layouts: a compact one computes its nodes of 2-3 surfels on the fly."""
+    from dofsplat.backends.cpu import select_cut
+
+    s = bumpy_surfels()
+    tree = build_hierarchy(s, small=small)
+    cam = ds.Camera(eye=(0.0, -2.5, 1.5), target=(0.0, 0.0, 0.0), width=160, height=120)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.3)
+    counts = {}
+    for m in (2, 4):
+        st = ds.RenderSettings(lod_pixel_threshold=0.0, lod_min_node=m)
+        counts[m] = select_cut(s, cam, lens, st, tree)[2]
+    assert np.any((counts[2] >= 2) & (counts[2] <= 3))
+    assert not np.any((counts[4] >= 2) & (counts[4] <= 3))
+    assert np.any(counts[4] >= 4)  # larger nodes are still drawn whole
+    assert counts[4].sum() == counts[2].sum()  # every visible surfel once, either way
+
+
+def test_the_smallest_nodes_drawn_as_surfels_close_the_crossing():
+    """Two planes crossing at 12 degrees (the fidelity suite's `intersect`) at 256 x 256,
+    a CoC of up to 11 px: the LOD frame against the no-LOD frame (PSNR of the colour),
+    measured 46.9 dB with nodes of 2-3 surfels drawn (lod_min_node 2) and 49.1 dB without
+    them (4), for 1.15 x the fragments (docs/maths.md, "The smallest nodes"); the bounds
+    sit between, 0.5 dB in from each."""
+    from dofsplat.demo import intersecting_planes_scene
+
+    s, cam, lens = intersecting_planes_scene(256, 256)
+    lens = replace(lens, aperture=0.2)
+    full = ds.render(s, cam, lens, ds.RenderSettings(lod=False)).image
+    tree = build_hierarchy(s)
+    small = ds.render(s, cam, lens, ds.RenderSettings(), tree)
+    whole = ds.render(s, cam, lens, ds.RenderSettings(lod_min_node=4), tree)
+    assert psnr(whole.image, full) > 48.6
+    assert psnr(small.image, full) < 47.4
+    assert whole.stats["fragments"] < 1.25 * small.stats["fragments"]
+
+
 def _cut(tree, s, cam, lens):
     """The node indices of the cut, straight from the traversal's flags."""
     from dofsplat.lod.select import select_nodes
@@ -549,7 +590,7 @@ def _cut(tree, s, cam, lens):
                                   tree.color_detail),
                  tree.small, model_arrays(tree, s), view, ax, bx, ay, by,
                  cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
-                 2.5, 1.0, 1.0, math.inf, True, flags)
+                 2.5, 1.0, 1.0, math.inf, 2, True, flags)
     return np.flatnonzero(flags == 1)
 
 

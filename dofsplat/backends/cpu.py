@@ -276,7 +276,7 @@ def select_cut(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     return cut(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
                settings.lod_pixel_threshold, settings.cull_backfaces, lod_kappa(settings, parts),
-               settings.lod_color_tolerance)
+               settings.lod_color_tolerance, settings.lod_min_node)
 
 
 def select(surfels: Surfels, camera: Camera, lens, settings: RenderSettings, hierarchy=None,

@@ -188,7 +188,8 @@ def _scatter_flagged(flags, position, nodes):
 @cuda.jit
 def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, center, bound, extent,
                position, normal, cone, sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near,
-               width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces):
+               width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
+               cull_backfaces):
     """Level ``depth`` of the breadth-first cut: visit each of its sizes[depth] nodes in
     ``frontier``, flag it or append its children to ``next_frontier`` (sizes[depth + 1]).
 
@@ -202,7 +203,7 @@ def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, cente
             what = _visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
                                sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near, width,
                                height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
-                               cull_backfaces)
+                               min_node, cull_backfaces)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
@@ -602,7 +603,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
             d["sigma_r2"], d["lod_cov"], d["color_detail"], view, ax, bx, ay, by, near, camera.width,
             camera.height, float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
             float(lod_kappa(settings, parts)), float(settings.lod_color_tolerance),
-            bool(settings.cull_backfaces))
+            int(settings.lod_min_node), bool(settings.cull_backfaces))
 
     # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
     position = _WS.get("lod.position", (n_nodes + 1,), np.int64)

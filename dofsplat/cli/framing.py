@@ -165,6 +165,7 @@ def settings_from_args(args):
                           lod_blur_fraction=args.lod_blur_fraction,
                           lod_color_tolerance=getattr(args, "lod_color_tolerance",
                                                       RenderSettings.lod_color_tolerance),
+                          lod_min_node=getattr(args, "lod_min_node", RenderSettings.lod_min_node),
                           show_lod=args.show_lod,
                           device=getattr(args, "device", "cpu"),
                           reconstruction=getattr(args, "reconstruction", "soft"),
@@ -262,7 +263,7 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         # JSON has no infinity: null is the tolerance turned off
         "lod_color_tolerance": (None if math.isinf(settings.lod_color_tolerance)
                                 else settings.lod_color_tolerance),
-        "show_lod": settings.show_lod,
+        "lod_min_node": settings.lod_min_node, "show_lod": settings.show_lod,
         "device": settings.device, "reconstruction": settings.reconstruction,
         "taper": settings.taper, "lens_samples": settings.lens_samples,
         "sharp_visibility": settings.sharp_visibility,

@@ -31,16 +31,18 @@ def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
 
 def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                   cutoff: float, pixel_threshold: float, cull_backfaces: bool,
-                  blur_fraction: float = 1.0, color_tolerance: float = float("inf")):
+                  blur_fraction: float = 1.0, color_tolerance: float = float("inf"),
+                  min_node: int = 2):
     """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
     return gather_cut(tree, surfels, select_cut(tree, surfels, camera, coc_k, inv_focus, cutoff,
                                                 pixel_threshold, cull_backfaces, blur_fraction,
-                                                color_tolerance))
+                                                color_tolerance, min_node))
 
 
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                cutoff: float, pixel_threshold: float, cull_backfaces: bool,
-               blur_fraction: float = 1.0, color_tolerance: float = float("inf")):
+               blur_fraction: float = 1.0, color_tolerance: float = float("inf"),
+               min_node: int = 2):
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
     ``cut_nodes``)."""
@@ -58,7 +60,7 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                  tree.small, model_arrays(tree, surfels), view, ax, bx, ay, by, near,
                  camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
-                 bool(cull_backfaces), flags)
+                 np.int64(min_node), bool(cull_backfaces), flags)
     return cut_nodes(flags, tree.n_surfels, tree.small)
 
 

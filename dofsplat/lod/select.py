@@ -14,7 +14,9 @@ A node is selected when
   (kappa = 1/2: 1.35-1.7 x the fragments, 0.1-2 dB closer to the reference in
   bench/paper.py's Figure 6). A node with texture at its own scale (``color_detail``
   above ``color_tol``) stops lower still: kappa is scaled by ``detail_factor``
-  (docs/maths.md, "A finer cut where the texture needs it").
+  (docs/maths.md, "A finer cut where the texture needs it"). A node of fewer than
+  ``min_node`` surfels is not drawn by this stop (RenderSettings.lod_min_node; 2: any
+  node), and its surfels are drawn instead (docs/maths.md, "The smallest nodes").
   Then circumellipse(J V^{q,l} J^T, V^I) = V^I: the node's resampling kernel is exactly the
   no-LOD DOF kernel of eq. 11, rasterised from one splat instead of many (PAPER_NOTES §4);
 * or it is smaller than the pixel threshold (QSplat's stop): its level basis V^l = V^r + V^q,
@@ -71,7 +73,7 @@ def detail_factor(detail, m, color_tol):
 @shared_inline
 def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
                color_detail, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-               thr2, kappa, color_tol, cull_backfaces):
+               thr2, kappa, color_tol, min_node, cull_backfaces):
     """CULL, SELECT or DESCEND for a node of m surfels whose attributes are row r of the
     given arrays (the tree's stored row, ``Hierarchy.row``; or a node the tree does not
     store, put in row 0 of arrays of its own; see the module docstring)."""
@@ -156,8 +158,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
         if inv_focus > 0.0 and u_lo <= 1.0 / inv_focus <= u_hi:
             return DESCEND  # the focal plane runs through the node
         coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
-        if lam_q <= kappa * detail_factor(np.float64(color_detail[r]), m, color_tol) \
-                * dof_variance(coc_min):
+        if m >= min_node and lam_q <= kappa * detail_factor(np.float64(color_detail[r]), m,
+                                                            color_tol) * dof_variance(coc_min):
             return SELECT
     return DESCEND
 
@@ -165,7 +167,7 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
 @numba.njit(cache=True, nogil=True)
 def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, small, model,
           view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-          color_tol, cull_backfaces, flags, pending, n_pending):
+          color_tol, min_node, cull_backfaces, flags, pending, n_pending):
     """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
     given): flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth
     that need a visit are appended to ``pending`` (rows of node, first leaf, count, row)
@@ -204,13 +206,14 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
         if m > small:
             what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
                               lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
-                              coc_k, inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces)
+                              coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
+                              cull_backfaces)
         else:
             v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
             store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
             what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, w12, view, ax, bx, ay, by,
                               near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                              color_tol, cull_backfaces)
+                              color_tol, min_node, cull_backfaces)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
@@ -223,7 +226,7 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k,
-                 inv_focus, cutoff, thr2, kappa, color_tol, cull_backfaces, flags):
+                 inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
     node whose children were visited, and 0 for the rest (below a selected or culled node).
     ``cut_nodes`` reads the cut from the flags.
@@ -240,13 +243,13 @@ def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, widt
     pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3] = 0, 0, n_surfels, 0
     n_pending = _walk(pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3], zero,
                       np.int64(SPLIT_DEPTH - 1), tree, small, model, view, ax, bx, ay, by, near,
-                      width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
+                      width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
                       cull_backfaces, flags, pending, zero)
     dummy = np.empty((1, 4), np.int64)
     for t in numba.prange(n_pending):
         _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], zero, np.int64(STACK),
               tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-              cutoff, thr2, kappa, color_tol, cull_backfaces, flags, dummy, zero)
+              cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags, dummy, zero)
 
 
 @numba.njit(cache=True, nogil=True)
