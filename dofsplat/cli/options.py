@@ -379,12 +379,16 @@ def positive_number(text: str) -> float:
     return value
 
 
-def lens_sample_count(text: str) -> int:
-    """--lens-samples: an integer in 1..MAX_LENS_SAMPLES."""
+def whole_number(text: str) -> int:
     try:
-        k = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+
+
+def lens_sample_count(text: str) -> int:
+    """--lens-samples: an integer in 1..MAX_LENS_SAMPLES."""
+    k = whole_number(text)
     if not 1 <= k <= MAX_LENS_SAMPLES:
         raise argparse.ArgumentTypeError(f"lens samples must be 1..{MAX_LENS_SAMPLES}, got {k}")
     return k
@@ -392,10 +396,7 @@ def lens_sample_count(text: str) -> int:
 
 def min_node_count(text: str) -> int:
     """--lod-min-node: an integer in 2..MAX_LOD_MIN_NODE."""
-    try:
-        m = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    m = whole_number(text)
     if not 2 <= m <= MAX_LOD_MIN_NODE:
         raise argparse.ArgumentTypeError(f"the smallest node must be 2..{MAX_LOD_MIN_NODE} "
                                          f"surfels, got {m}")
@@ -403,10 +404,7 @@ def min_node_count(text: str) -> int:
 
 
 def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    value = whole_number(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
     return value
