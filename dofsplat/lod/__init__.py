@@ -45,7 +45,8 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                min_node: int = 2):
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
-    ``cut_nodes``)."""
+    ``cut_nodes``). min_node: the smallest node the DOF stop draws
+    (``RenderSettings.lod_min_node``)."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):

@@ -18,7 +18,8 @@ import numba
 shared = numba.njit(cache=True, nogil=True)
 # the same, inlined into its callers at numba's level: the projection's per-splat functions,
 # which LLVM would otherwise call out of line (a numba call passes every tuple and array
-# through memory and checks a status: 0.6-0.7 x the projection's time inlined, bench/RESULTS.md)
+# through memory and checks a status: project_splats took 0.42-0.67 x the time inlined,
+# bench/RESULTS.md, "The projection inlined")
 shared_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 LN4 = math.log(4.0)

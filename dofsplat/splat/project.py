@@ -76,7 +76,7 @@ def project_splats(positions, normals, tangents, ru, rv, area, rgb, alpha, lod_c
                           out, bbox, visible)
 
 
-# inlined at numba's level (1.4-1.8 x faster than a call, bench/RESULTS.md). Its arguments
+# inlined at numba's level (1.5-2.4 x faster than a call, bench/RESULTS.md). Its arguments
 # stay under 30: past CPython's STACK_USE_GUIDELINE a call is compiled as f(*args), which
 # numba's inliner refuses ("Calling a closure with *args"), and then every array of the
 # call went through memory per splat
