@@ -43,7 +43,7 @@ class RenderSettings:
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
     lod_color_tolerance: float = 0.02  # LOD: a node with more texture at its own scale than this (RMS, linear RGB: Hierarchy.color_detail) is cut finer, down to 0.3 x the blur fraction; inf: off (docs/maths.md, "A finer cut where the texture needs it")
-    lod_min_node: int = 2  # LOD: the blur's stop draws a node of at least this many surfels; a smaller one is drawn as its surfels (4: not the nodes of 2-3 surfels, which carry most of LOD's loss where surfaces cross; docs/maths.md, "The smallest nodes"); 2: any node
+    lod_min_node: int = 4  # LOD: the blur's stop draws a node of at least this many surfels; a smaller one is drawn as its surfels (4, the default: not the nodes of 2-3 surfels, which carry most of LOD's loss where surfaces cross; docs/maths.md, "The smallest nodes"); 2: any node, as the paper
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs

@@ -419,7 +419,13 @@ def test_points_fall_with_the_aperture_and_quality_holds(plane_view):
             # measured 52.5-70 dB on this plane (256^2 surfels, 256^2 px): 45 dB leaves margin
             assert psnr(lod.image, full.image) > 45, aperture
             last = (lod, full)
-    assert all(a > b for a, b in zip(pts, pts[1:])), pts
+    # measured [45700, 45844, 46160, 29962, 17014]: at the two smallest apertures the blur
+    # is too small for the stop to draw a node of lod_min_node (4) surfels, and the frame
+    # takes in the splats beyond its edge whose blur reaches into it (+0.3 %, +1.0 %); from
+    # there on the count falls
+    assert max(pts[1:3]) < 1.02 * pts[0], pts
+    assert pts[2] > pts[3] > pts[4], pts
+    assert pts[4] < 0.5 * pts[0], pts
     lod, full = last
     # the default stop (kappa 0.35) at aperture 0.4: measured 6.8x fewer fragments
     assert lod.stats["fragments"] < full.stats["fragments"] / 5
@@ -444,8 +450,9 @@ def test_node_colour_gradients_keep_a_checkers_edges():
     tree = build_hierarchy(s)
     flat = replace(tree, color_grad=np.zeros_like(tree.color_grad))
     # the cut of the paper's stop alone: the finer cut for textured nodes would hide the
-    # gradients' share (test_a_textured_node_is_cut_finer)
-    st = ds.RenderSettings(lod_color_tolerance=math.inf)
+    # gradients' share (test_a_textured_node_is_cut_finer); every node drawn (lod_min_node
+    # 2), so that the nodes of 2-3 surfels that straddle an edge show their gradients too
+    st = ds.RenderSettings(lod_color_tolerance=math.inf, lod_min_node=2)
     for aperture, bound in ((0.2, 68.0), (0.4, 59.5)):
         lens = ds.ThinLens(focus_distance=3.0, aperture=aperture)
         full = ds.render(s, cam, lens, ds.RenderSettings(lod=False)).image
@@ -531,8 +538,11 @@ def test_a_textured_node_is_cut_finer():
     tree = build_hierarchy(s)
     lens = ds.ThinLens(focus_distance=3.0, aperture=0.4)
     full = ds.render(s, cam, lens, ds.RenderSettings(lod=False)).image
-    finer = ds.render(s, cam, lens, ds.RenderSettings(), tree)
-    plain = ds.render(s, cam, lens, ds.RenderSettings(lod_color_tolerance=math.inf), tree)
+    # every node drawn (lod_min_node 2: the figures above), so the rule has nodes of 2-3
+    # surfels to refine too
+    finer = ds.render(s, cam, lens, ds.RenderSettings(lod_min_node=2), tree)
+    plain = ds.render(s, cam, lens, ds.RenderSettings(lod_color_tolerance=math.inf,
+                                                      lod_min_node=2), tree)
     assert psnr(finer.image, full) > 63.8
     assert psnr(plain.image, full) < 63.3  # the test can tell
     assert finer.stats["fragments"] < 1.25 * plain.stats["fragments"]
@@ -542,7 +552,7 @@ def test_a_textured_node_is_cut_finer():
 def test_the_blurs_stop_draws_no_node_under_lod_min_node(small):
     """With lod_min_node = 4 the DOF stop selects no node of 2 or 3 surfels: its surfels are
     drawn instead (the pixel stop is off here, so only the DOF stop selects inner nodes);
-    with 2 (the default) it does select such nodes, so the test can tell. Both tree
+    with 2 (the paper's rule) it does select such nodes, so the test can tell. Both tree
     layouts: a compact one computes its nodes of 2-3 surfels on the fly."""
     from dofsplat.backends.cpu import select_cut
 
@@ -572,8 +582,8 @@ def test_the_smallest_nodes_drawn_as_surfels_close_the_crossing():
     lens = replace(lens, aperture=0.2)
     full = ds.render(s, cam, lens, ds.RenderSettings(lod=False)).image
     tree = build_hierarchy(s)
-    small = ds.render(s, cam, lens, ds.RenderSettings(), tree)
-    whole = ds.render(s, cam, lens, ds.RenderSettings(lod_min_node=4), tree)
+    small = ds.render(s, cam, lens, ds.RenderSettings(lod_min_node=2), tree)
+    whole = ds.render(s, cam, lens, ds.RenderSettings(), tree)  # the default, 4
     assert psnr(whole.image, full) > 48.6
     assert psnr(small.image, full) < 47.4
     assert whole.stats["fragments"] < 1.25 * small.stats["fragments"]
@@ -606,8 +616,9 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
     s, tree = bumpy
     cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
     lens = ds.ThinLens(focus_distance=1.5, aperture=0.3, bokeh=bokeh, blades=blades)
-    # select_splats' default stop, below
-    st = ds.RenderSettings(lod_blur_fraction=1.0, lod_color_tolerance=math.inf)
+    # select_splats' default stop, below (the paper's: every node may be drawn)
+    st = ds.RenderSettings(lod_blur_fraction=1.0, lod_color_tolerance=math.inf,
+                           lod_min_node=2)
     src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
     inner = src.level > 0
     assert inner.sum() > 20
