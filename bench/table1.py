@@ -217,11 +217,16 @@ def main(argv=None):
                     default=ds.RenderSettings.lod_color_tolerance,
                     help="the finer cut for textured nodes (RenderSettings."
                          "lod_color_tolerance; default the renderer's, 0.02; inf: off)")
+    ap.add_argument("--lod-min-node", type=int, default=ds.RenderSettings.lod_min_node,
+                    help="the smallest node the blur's stop draws (RenderSettings."
+                         "lod_min_node; default the renderer's, 4; 2 is the paper's rule)")
     args = ap.parse_args(argv)
     lod_options = {"lod_blur_fraction": args.lod_blur_fraction,
-                   "lod_color_tolerance": args.lod_color_tolerance}
+                   "lod_color_tolerance": args.lod_color_tolerance,
+                   "lod_min_node": args.lod_min_node}
     print(f"LOD stop: lod_blur_fraction = {args.lod_blur_fraction:g}, "
-          f"lod_color_tolerance = {args.lod_color_tolerance:g}")
+          f"lod_color_tolerance = {args.lod_color_tolerance:g}, "
+          f"lod_min_node = {args.lod_min_node}")
     print(f"machine: {machine()}")
     scenes = []
     names = args.scenes.split(",")
@@ -258,6 +263,7 @@ def main(argv=None):
                                                "lod_color_tolerance": (
                                                    None if math.isinf(args.lod_color_tolerance)
                                                    else args.lod_color_tolerance),
+                                               "lod_min_node": args.lod_min_node,
                                                "table": records, "sweep": sweeps}, indent=1))
 
 

@@ -280,12 +280,13 @@ class _Session:
                            show_lod=bool(self.show_lod.value) and bool(self.lod.value))
         if kind == "low":
             # while the camera moves: the paper's coarser LOD stop (docs/maths.md, "The
-            # stop's margin") and no finer cut for textured nodes ("A finer cut where the
-            # texture needs it"), together 1.4-1.6x cheaper at Table 1's largest aperture
-            # (bench/RESULTS.md); the still frame keeps the settings' own
+            # stop's margin"), every node drawn ("The smallest nodes") and no finer cut for
+            # textured nodes ("A finer cut where the texture needs it"), together 1.6-1.8x
+            # cheaper at Table 1's largest aperture (bench/RESULTS.md); the still frame
+            # keeps the settings' own
             settings = replace(settings, lod_blur_fraction=max(settings.lod_blur_fraction,
                                                                MOVING_LOD_BLUR_FRACTION),
-                               lod_color_tolerance=math.inf)
+                               lod_color_tolerance=math.inf, lod_min_node=2)
         return camera, lens, settings
 
     # the render thread

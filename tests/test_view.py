@@ -217,7 +217,8 @@ def test_ctrl_c_stops_the_server_cleanly():
 
 def test_moving_frames_use_the_papers_lod_stop():
     """While the camera moves the viewer draws a quarter-resolution frame at the paper's
-    coarser LOD stop (kappa 1); the still frame keeps the settings' own (0.35 by default)."""
+    coarser LOD stop (kappa 1, every node drawn, no finer cut for textured nodes); the still
+    frame keeps the settings' own (0.35, nodes of at least 4 surfels, 0.02 by default)."""
     from types import SimpleNamespace
 
     from dofsplat.viewer import MOVING_LOD_BLUR_FRACTION, _Session
@@ -239,4 +240,6 @@ def test_moving_frames_use_the_papers_lod_stop():
     assert still.lod_blur_fraction == ds.RenderSettings().lod_blur_fraction == 0.35
     assert moving.lod_color_tolerance == math.inf
     assert still.lod_color_tolerance == ds.RenderSettings().lod_color_tolerance == 0.02
+    assert moving.lod_min_node == 2
+    assert still.lod_min_node == ds.RenderSettings().lod_min_node == 4
     assert (camera.width, camera.height) == (400, 300)

@@ -303,9 +303,10 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      default=RenderSettings.lod_blur_fraction,
                      help="draw a node when its own blur is at most K times the depth-of-"
                           "field blur (variance): 0.35 (default) keeps textures and contacts "
-                          "close to the exact picture (0-5 dB from --no-lod on the fidelity "
-                          "suite, 0.5-10 dB at 1) for 1.0-2.9x a pinhole frame at a 40-pixel "
-                          "blur; 1 is the paper's rule, faster and softer")
+                          "close to the exact picture (0-3.6 dB from --no-lod on the fidelity "
+                          "suite, 0.5-10 dB at 1) for 1.5-3.3x a pinhole frame at a 40-pixel "
+                          "blur; 1 (with --lod-min-node 2) is the paper's rule, faster and "
+                          "softer")
     lod.add_argument("--lod-color-tolerance", metavar="T", type=tolerance,
                      default=RenderSettings.lod_color_tolerance,
                      help="draw a node finer where it has more texture at its own scale "
@@ -316,11 +317,11 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     lod.add_argument("--lod-min-node", metavar="M", type=min_node_count,
                      default=RenderSettings.lod_min_node,
                      help="the blur draws only nodes of at least M surfels; smaller ones "
-                          "are drawn as their surfels (default: 2, any node). 4 brings the "
-                          "crossing planes and the lion's leaves of the fidelity suite within "
-                          "1 dB of --no-lod at 10 and 20 px of blur, for 1.1-1.4x the "
-                          "fragments and 1.0-1.4x the time (docs/maths.md, \"The smallest "
-                          "nodes\")")
+                          "are drawn as their surfels (default: 4, which brings the crossing "
+                          "planes and the lion's leaves of the fidelity suite within 1 dB of "
+                          "--no-lod at 10 and 20 px of blur, for 1.1-1.4x the fragments and "
+                          "1.0-1.4x the time of 2; 2 draws any node, as the paper does; "
+                          "docs/maths.md, \"The smallest nodes\")")
     lod.add_argument("--show-lod", action="store_true",
                      help="colour each splat by its level (grey: single surfels, then "
                           "blue, cyan, green, ... as nodes get coarser) and draw it without "
