@@ -496,7 +496,7 @@ def main(argv=None) -> int:
                          "renderer's, 0.35; 1 is the paper's rule)")
     ap.add_argument("--lod-min-node", type=int, default=ds.RenderSettings.lod_min_node,
                     help="the smallest node ours' blur may draw (RenderSettings.lod_min_node; "
-                         "default the renderer's, 2: any node)")
+                         "default the renderer's, 4; 2: any node, the paper's)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]

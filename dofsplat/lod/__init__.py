@@ -46,7 +46,8 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
     ``cut_nodes``). min_node: the smallest node the DOF stop draws
-    (``RenderSettings.lod_min_node``)."""
+    (``RenderSettings.lod_min_node``; 2 here, any node, with the paper's stop as this
+    function's other defaults)."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):
