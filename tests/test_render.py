@@ -2,6 +2,9 @@
 
 import dataclasses
 import math
+import os
+import subprocess
+import sys
 
 import numba
 import numpy as np
@@ -215,6 +218,34 @@ def test_image_does_not_depend_on_thread_count_or_banding(lod):
     assert banded.stats["bands"] > 2
     np.testing.assert_array_equal(banded.image, many.image)
     assert banded.stats["fragments"] == many.stats["fragments"]
+
+
+def test_a_process_with_more_threads_reads_the_cached_kernels_safely(tmp_path):
+    """numba's disk cache keeps machine code across processes: a kernel that read the thread
+    count while compiling would size its per-thread tile buffers for the process that
+    compiled it (this session's 2 threads, conftest) and, run by a process with more
+    threads, write past them (glibc aborts: "free(): invalid next size"; a GPU machine's
+    16 threads found it). A process with 6 threads renders from this session's cache, and
+    its frame equals this process's to the bit (the image does not depend on the threads)."""
+    s = random_scene(5, n=2000)
+    cam = ds.Camera(eye=(0, 0, 4), target=(0, 0, 0), width=256, height=192, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    here = ds.render(s, cam, lens, ds.RenderSettings()).image
+    np.savez(tmp_path / "scene.npz", positions=s.positions, normals=s.normals,
+             radius=s.radius, colors=s.colors, opacity=s.opacity)
+    script = (
+        "import sys, numpy as np, dofsplat as ds\n"
+        "d = np.load(sys.argv[1])\n"
+        "s = ds.Surfels(**{k: d[k] for k in d.files})\n"
+        "cam = ds.Camera(eye=(0, 0, 4), target=(0, 0, 0), width=256, height=192, fov_y=35)\n"
+        "lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)\n"
+        "np.save(sys.argv[2], ds.render(s, cam, lens, ds.RenderSettings()).image)\n")
+    env = dict(os.environ, NUMBA_NUM_THREADS="6")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "scene.npz"),
+                           str(tmp_path / "image.npy")], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    np.testing.assert_array_equal(np.load(tmp_path / "image.npy"), here)
 
 
 def test_tile_order_visits_every_row_once_and_spreads_each_run():

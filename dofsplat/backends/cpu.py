@@ -408,6 +408,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     then None, and the time it takes is not counted here); front: the front map, drawn
     already (``draw_cut_banded``), else it is drawn here when the front pass runs.
     """
+    import numba
+
     from ..raster.abuffer import (FRONT_MARGIN, TILE, apply_visibility, bin_splats,
                                  rasterize_band)
 
@@ -447,7 +449,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
         rasterize_band(sp, bb, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
                        background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
-                       rho1, blades, table, u_c)
+                       rho1, blades, table, u_c, numba.config.NUMBA_NUM_THREADS)
         raster_ms += _ms(t)
         frags += int(tile_stats[:, 0].sum())
         overflows += int(tile_stats[:, 1].sum())

@@ -652,11 +652,14 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
 @numba.njit(cache=True, nogil=True, parallel=True)
 def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                    background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1,
-                   blades, table, u_c):
+                   blades, table, u_c, pool):
     """Rasterise and resolve the tiles of one band (tile rows ty0..) into the output images.
 
     image: (H, W, 4) float32; depth, weight: (H, W) float32; tile_stats: (n_tiles, 2) int64
-    receives fragments generated and A-buffer overflows per tile.
+    receives fragments generated and A-buffer overflows per tile. pool: the number of
+    threads' tile buffers, at least numba's thread count (``numba.config.NUMBA_NUM_THREADS``,
+    read by the caller: read here it would be a constant of the cached machine code, and a
+    process with more threads than the one that compiled it would write past the buffers).
     """
     n_tiles = offsets.shape[0] - 1
     bg_r, bg_g, bg_b = background[0], background[1], background[2]
@@ -665,7 +668,6 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     # each thread's tile buffers, allocated once per band, not once per tile: a tile's
     # A-buffer is 144 KiB, past malloc's mmap threshold, and a fresh mapping per tile (its
     # page faults) cost 30 ms of a 1280 x 720 frame with nothing in it (bench/RESULTS.md)
-    pool = numba.config.NUMBA_NUM_THREADS
     accs = np.empty((pool, TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
     cnts = np.empty((pool, TILE * TILE), np.int64)
     cells = np.empty((pool, TILE * TILE), np.int32)  # an aperture kernel's table cells
