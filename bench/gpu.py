@@ -201,9 +201,9 @@ def main(argv=None):
                     print(f"| {name} | {size} | {len(surfels):,} | {aperture:g} | {'on' if lod else 'off'} "
                           f"| {gpu_ms:.2f} | {min(gpu_all):.2f} | {copy_ms:.1f} | {cpu_text} | {ratio} "
                           f"| {stages} | {stats['fragments'] / 1000:.0f} | {diff_text} |", flush=True)
-    if args.json:
-        args.json.write_text(json.dumps({"gpu": gpu_name(), "cpu": machine(), "rows": rows},
-                                        indent=1) + "\n")
+                    if args.json:  # after every row: a run cut short keeps what it measured
+                        args.json.write_text(json.dumps(
+                            {"gpu": gpu_name(), "cpu": machine(), "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
