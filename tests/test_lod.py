@@ -341,7 +341,8 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     select_nodes(stored.n_surfels, (stored.center, stored.bound, stored.extent,
                                     stored.position, stored.normal, stored.cone,
                                     stored.sigma_r2, stored.lod_cov, stored.color_detail),
-                 stored.small, model_arrays(stored, s), view, ax, bx, ay, by, 0.01, 160, 120,
+                 stored.small, model_arrays(stored, s), np.zeros(0, np.float32), 0.0, view,
+                 ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, math.inf, 2, True, flags)
     chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
     # cut_nodes reads the same nodes, with the first leaves, counts and rows of the tree
@@ -591,6 +592,89 @@ def test_the_smallest_nodes_drawn_as_surfels_close_the_crossing():
     assert whole.stats["fragments"] < 1.25 * small.stats["fragments"]
 
 
+# -- the pinhole frame's walk (select.leaves_below) ------------------------------------------
+
+# (eye, width, height), looking at (0, 0.3, 0): near, where the bound holds on every node;
+# two grazing views, where it holds on 565 and 707 stored nodes and the pixel stop selects
+# 242 and 352 inner nodes elsewhere; and far, where it holds nowhere
+PINHOLE_VIEWS = [((0.4, -1.2, 2.0), 640, 480), ((0.0, -1.6, 0.35), 48, 36),
+                 ((0.2, -1.1, 0.25), 32, 24), ((0.0, 0.0, 6.0), 64, 48)]
+
+
+@pytest.mark.parametrize("small", [1, 3], ids=["full", "compact"])
+def test_min_leaf_geo_is_each_rows_smallest_leaf(small):
+    """subtree_min_geo's walk against numpy: each stored row's smallest r_u r_v among its
+    leaves (elliptical surfels: r_u and r_v differ)."""
+    from dofsplat.lod import min_leaf_geo
+
+    s = bumpy_surfels(seed=3, n=700)
+    rng = np.random.default_rng(1)
+    s = replace(s, tangent=np.tile([1.0, 0.0, 0.0], (len(s), 1)).astype(np.float32),
+                radius_v=(s.radius * rng.uniform(0.3, 1.0, len(s))).astype(np.float32))
+    tree = build_hierarchy(s, small=small)
+    got = min_leaf_geo(tree, s, small)
+    geo = s.radius.astype(np.float64) * s.radius_v
+    stored = np.flatnonzero(tree.rows >= 0)
+    want = np.array([geo[leaves_of(tree, i)].min() for i in stored])
+    np.testing.assert_array_equal(got[tree.rows[stored]], want.astype(np.float32))
+    assert min_leaf_geo(tree, s, small) is got  # kept on the tree
+
+
+@pytest.mark.parametrize("small", [1, 3], ids=["full", "compact"])
+@pytest.mark.parametrize("eye, width, height", PINHOLE_VIEWS)
+def test_no_node_below_a_pinhole_walk_passes_the_pixel_stop(bumpy, small, eye, width, height):
+    """leaves_below's bound: under every stored node where it holds, no inner node would be
+    selected by its visit (in a frame without blur only the pixel stop selects), so the
+    walk that skips those visits cuts the same nodes. Checked node by node with
+    visit_node itself, on views where the bound holds for many nodes and fails for many."""
+    from dofsplat.lod import min_leaf_geo
+    from dofsplat.lod.select import SELECT, leaves_below, visit_node
+
+    s = bumpy[0]
+    tree = build_hierarchy(s, small=small)
+    full = by_node(tree, s)  # a row per node: the small nodes' too
+    cam = ds.Camera(eye=eye, target=(0, 0.3, 0), width=width, height=height, fov_y=50)
+    ax, bx, ay, by = cam.screen_coefficients()
+    near = cam.frustum_lrbtn()[4]
+    view = np.ascontiguousarray(cam.camera_from_world()[:3].reshape(12))
+    min_geo = min_leaf_geo(tree, s, small)
+    a_min = min(ax, ay)
+    held, selected = 0, 0
+    for i in np.flatnonzero(tree.rows >= 0):
+        if not leaves_below(tree.rows[i], tree.center, tree.bound, min_geo, view, a_min, near,
+                            1.0):
+            continue
+        held += 1
+        below = np.arange(i, i + 2 * tree.count[i] - 1)
+        for j in below[full.count[below] > 1]:
+            what = visit_node(j, int(full.count[j]), full.center, full.bound, full.extent,
+                              full.position, full.normal, full.cone, full.sigma_r2,
+                              full.lod_cov, full.color_detail, view, ax, bx, ay, by, near,
+                              width, height, 0.0, 0.0, 2.5, 1.0, 1.0, math.inf, 2, True, True)
+            selected += what == SELECT
+    assert selected == 0
+    assert held > 0 or eye[2] == 6.0  # the bound is exercised, but for the far view
+
+
+@pytest.mark.parametrize("small", [1, 3], ids=["full", "compact"])
+@pytest.mark.parametrize("eye, width, height", PINHOLE_VIEWS)
+@pytest.mark.parametrize("cull", [True, False], ids=["cull", "two-sided"])
+def test_the_pinhole_walk_cuts_what_the_visits_cut(bumpy, small, eye, width, height, cull):
+    """The walk with leaves_below (the default) and the walk that visits every node give the
+    same cut, row for row, culled subtrees included."""
+    from dofsplat.lod import select_cut
+
+    s = bumpy[0]
+    tree = build_hierarchy(s, small=small)
+    cam = ds.Camera(eye=eye, target=(0, 0.3, 0), width=width, height=height, fov_y=50)
+    fast = select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull)
+    slow = select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull, walk_to_leaves=False)
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a, b)
+    if width < 64:  # the grazing views: the pixel stop's nodes beside the leaves' subtrees
+        assert 0 < np.sum(slow[2] > 1) < slow[0].size
+
+
 def _cut(tree, s, cam, lens):
     """The node indices of the cut, straight from the traversal's flags."""
     from dofsplat.lod.select import select_nodes
@@ -600,8 +684,9 @@ def _cut(tree, s, cam, lens):
     select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
                                   tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
                                   tree.color_detail),
-                 tree.small, model_arrays(tree, s), view, ax, bx, ay, by,
-                 cam.frustum_lrbtn()[4], cam.width, cam.height, *lens.coc_coefficients(cam),
+                 tree.small, model_arrays(tree, s), np.zeros(0, np.float32), 0.0, view,
+                 ax, bx, ay, by, cam.frustum_lrbtn()[4], cam.width, cam.height,
+                 *lens.coc_coefficients(cam),
                  2.5, 1.0, 1.0, math.inf, 2, True, flags)
     return np.flatnonzero(flags == 1)
 

@@ -47,7 +47,8 @@ import numba
 import numpy as np
 from numba import cuda
 
-from ..lod.select import DESCEND, SELECT, gather_gradient, gather_splat, visit_node
+from ..lod.select import (CULL_TEST_MIN_COUNT, DESCEND, SELECT, gather_gradient, gather_splat,
+                          leaves_below, visit_node)
 from ..raster.abuffer import (FRONT_FIELDS, FRONT_MARGIN, MAX_SURFACES, N_ACC,
                               RESOLVE_SCRATCH, TILE, front_box, front_fragments,
                               insert_fragment, resolve_to_image, splat_visibility)
@@ -93,6 +94,7 @@ _project_splat = device_twin(project_splat)
 _slope_splat = device_twin(slope_splat)
 _shade_splat = device_twin(shade_splat)
 _visit_node = device_twin(visit_node)
+_leaves_below = device_twin(leaves_below)
 _gather_splat = device_twin(gather_splat)
 _gather_gradient = device_twin(gather_gradient)
 _insert_fragment = device_twin(insert_fragment)
@@ -187,29 +189,45 @@ def _scatter_flagged(flags, position, nodes):
 
 @cuda.jit
 def _lod_level(depth, sizes, frontier, next_frontier, flags, start, count, center, bound, extent,
-               position, normal, cone, sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near,
-               width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
-               cull_backfaces):
+               position, normal, cone, sigma_r2, lod_cov, color_detail, min_geo, a_min, view,
+               ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+               color_tol, min_node, cull_backfaces):
     """Level ``depth`` of the breadth-first cut: visit each of its sizes[depth] nodes in
     ``frontier``, flag it or append its children to ``next_frontier`` (sizes[depth + 1]).
+    A node inside a subtree of ``leaves_below`` (the CPU's walk; min_geo: a row per inner
+    node, a_min 0 to visit every node) is entered as -(i + 1) and gets the culling tests
+    alone.
 
     A grid-stride loop over a size read on the GPU: the host launches one kernel per level
     of the tree without waiting for the previous level's count."""
+    sharp = coc_k <= 0.0 and a_min > 0.0
     for t in range(cuda.grid(1), sizes[depth], cuda.gridsize(1)):
         i = frontier[t]
+        leaves = i < 0
+        if leaves:
+            i = -i - 1
         m = count[i]
         what = SELECT  # a leaf: its surfel
         if m > 1:  # an inner node: its attributes are row i - start[i] (lod/hierarchy.py)
-            what = _visit_node(i - start[i], m, center, bound, extent, position, normal, cone,
-                               sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near, width,
-                               height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
-                               min_node, cull_backfaces)
+            r = i - start[i]
+            if not leaves and sharp:
+                leaves = _leaves_below(r, center, bound, min_geo, view, a_min, near, thr2)
+            if leaves and m < CULL_TEST_MIN_COUNT:
+                what = DESCEND
+            else:
+                what = _visit_node(r, m, center, bound, extent, position, normal, cone,
+                                   sigma_r2, lod_cov, color_detail, view, ax, bx, ay, by, near,
+                                   width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+                                   color_tol, min_node, cull_backfaces, not leaves)
         if what == SELECT:
             flags[i] = 1
         elif what == DESCEND:
             slot = cuda.atomic.add(sizes, depth + 1, 2)
-            next_frontier[slot] = i + 1  # left child
-            next_frontier[slot + 1] = i + 2 * (m // 2)  # right child
+            left, right = i + 1, i + 2 * (m // 2)
+            if leaves:
+                left, right = -left - 1, -right - 1
+            next_frontier[slot] = left
+            next_frontier[slot + 1] = right
 
 
 @cuda.jit
@@ -538,7 +556,8 @@ def _array_key(surfels) -> tuple:
 
 
 TREE_ARRAYS = ("order", "start", "count", "center", "bound", "extent", "position", "normal",
-               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "color_grad", "color_detail")
+               "cone", "color", "opacity", "area", "sigma_r2", "lod_cov", "color_grad",
+               "color_detail", "min_geo")
 
 
 def device_scene(surfels, tree=None) -> DeviceScene:
@@ -557,10 +576,13 @@ def device_scene(surfels, tree=None) -> DeviceScene:
         scene = DeviceScene(key=key, source=dev, raw=raw, tree=None, tree_id=None)
         surfels._cuda_scene = scene
     if tree is not None and scene.tree_id != id(tree):
+        from ..lod import min_leaf_geo
+
         # a row per inner node: the walk below reads row i - start[i] of every node it
         # visits (the CPU computes the nodes the tree does not store as it reaches them)
         rows = tree.expanded(surfels)
-        rows.update(order=tree.order, start=tree.start, count=tree.count)
+        rows.update(order=tree.order, start=tree.start, count=tree.count,
+                    min_geo=min_leaf_geo(tree, surfels, 1))
         scene.tree = {name: _upload(rows[name]) for name in TREE_ARRAYS}
         scene.tree_id = id(tree)
     return scene
@@ -584,6 +606,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
     near = float(camera.frustum_lrbtn()[4])
     view = tuple(float(v) for v in camera.camera_from_world()[:3].reshape(12))
     thr2 = float(settings.lod_pixel_threshold) ** 2
+    a_min = float(min(abs(ax), abs(ay)))  # the pinhole frame's walk (lod.select_cut)
 
     # the cut, level by level (a level of a binary tree over N leaves has at most N nodes);
     # sizes[d]: the number of nodes visited at depth d, the root alone at depth 0
@@ -600,8 +623,9 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
         _lod_level[grid, THREADS](
             depth, sizes, fronts[depth % 2], fronts[1 - depth % 2], flags, d["start"], d["count"],
             d["center"], d["bound"], d["extent"], d["position"], d["normal"], d["cone"],
-            d["sigma_r2"], d["lod_cov"], d["color_detail"], view, ax, bx, ay, by, near, camera.width,
-            camera.height, float(coc_k), float(inv_focus), float(settings.cutoff), thr2,
+            d["sigma_r2"], d["lod_cov"], d["color_detail"], d["min_geo"], a_min, view, ax, bx,
+            ay, by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
+            float(settings.cutoff), thr2,
             float(lod_kappa(settings, parts)), float(settings.lod_color_tolerance),
             int(settings.lod_min_node), bool(settings.cull_backfaces))
 

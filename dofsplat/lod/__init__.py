@@ -42,12 +42,15 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                cutoff: float, pixel_threshold: float, cull_backfaces: bool,
                blur_fraction: float = 1.0, color_tolerance: float = float("inf"),
-               min_node: int = 2):
+               min_node: int = 2, walk_to_leaves: bool = True):
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
     ``cut_nodes``). min_node: the smallest node the DOF stop draws
     (``RenderSettings.lod_min_node``; 2 here, any node, with the paper's stop as this
-    function's other defaults)."""
+    function's other defaults). walk_to_leaves: in a frame without blur, take the leaves of
+    a subtree that no pixel stop can end without visiting its nodes (``leaves_below``;
+    False visits every node: the same cut, but for leaves under nodes that the visits cull
+    and the projection culls one by one)."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):
@@ -56,14 +59,39 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     near = camera.frustum_lrbtn()[4]
     view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
     flags = np.empty(len(tree), np.uint8)
+    sharp = walk_to_leaves and coc_k <= 0.0
+    min_geo = min_leaf_geo(tree, surfels, tree.small) if sharp else np.zeros(0, np.float32)
+    a_min = float(min(abs(ax), abs(ay))) if sharp else 0.0
     select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
                                   tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
                                   tree.color_detail),
-                 tree.small, model_arrays(tree, surfels), view, ax, bx, ay, by, near,
+                 tree.small, model_arrays(tree, surfels), min_geo, a_min, view, ax, bx, ay,
+                 by, near,
                  camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
                  np.int64(min_node), bool(cull_backfaces), flags)
     return cut_nodes(flags, tree.n_surfels, tree.small)
+
+
+def min_leaf_geo(tree: Hierarchy, surfels, small: int):
+    """Each stored row's smallest leaf r_u r_v (``select.subtree_min_geo``) for a tree of
+    this ``small`` (the tree's own; 1: a row per inner node, the CUDA backend's), (rows,)
+    float32: made on first use and kept on the tree, for the same arrays, like
+    ``leaf_arrays``."""
+    import numpy as np
+
+    from .hierarchy import stored_nodes
+    from .select import subtree_min_geo
+
+    order, _, _, _, _, _, ru, rv, _ = leaf_arrays(tree, surfels)
+    cached = tree.__dict__.setdefault("_min_geo", {})
+    hit = cached.get(small)
+    if hit is not None and hit[0] is ru and hit[1] is rv:
+        return hit[2]
+    out = np.zeros(max(int(stored_nodes(tree.n_surfels, small)), 1), np.float32)
+    subtree_min_geo(tree.n_surfels, small, order, ru, rv if rv.shape[0] else ru, out)
+    cached[small] = (ru, rv, out)
+    return out
 
 
 def model_arrays(tree: Hierarchy, surfels):

@@ -26,6 +26,11 @@ A node is selected when
 A node whose mean normal faces away from the eye while its cone does not is never
 selected (its flat splat would be a back face): the traversal descends instead.
 
+In a frame without blur only the pixel stop selects inner nodes, and in a subtree none of
+whose inner nodes can pass it (``leaves_below``) the walk runs the culling tests alone:
+the same flags, for a few integer operations on most nodes (docs/maths.md, "The pinhole
+frame's walk").
+
 The tree's top levels are walked serially down to ``SPLIT_DEPTH``; the subtrees below are
 walked in parallel, one explicit stack each. The result is a flag per node.
 """
@@ -73,10 +78,11 @@ def detail_factor(detail, m, color_tol):
 @shared_inline
 def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lod_cov,
                color_detail, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff,
-               thr2, kappa, color_tol, min_node, cull_backfaces):
+               thr2, kappa, color_tol, min_node, cull_backfaces, stops):
     """CULL, SELECT or DESCEND for a node of m surfels whose attributes are row r of the
     given arrays (the tree's stored row, ``Hierarchy.row``; or a node the tree does not
-    store, put in row 0 of arrays of its own; see the module docstring)."""
+    store, put in row 0 of arrays of its own; see the module docstring). stops=False: the
+    culling tests alone, DESCEND where they keep the node (a subtree of ``leaves_below``)."""
     if m == 1:
         # a leaf is one surfel: the projection culls it exactly (near plane, back face,
         # outside the image), so the tests below would only repeat that work
@@ -123,6 +129,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
             alpha = math.acos(min(1.0, max(-1.0, cos_a)))
             if alpha + cone[r] + math.asin(rad / dist) < 0.5 * math.pi:
                 return CULL
+    if not stops:
+        return DESCEND
 
     # the node as a splat: its mean position and normal
     pwx, pwy, pwz = position[r, 0], position[r, 1], position[r, 2]
@@ -164,14 +172,84 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
     return DESCEND
 
 
+# the bound's margin for float32 rounding: sigma_r2 is a float32 mean of float32 values, the
+# normal a float32 unit vector (its tangent frame unit to 1e-7)
+LEAVES_MARGIN = 1.001
+
+
+@shared_inline
+def leaves_below(r, center, bound, min_geo, view, a_min, near, thr2):
+    """Whether no inner node of the subtree at stored row r can pass the pixel stop, in a
+    frame without blur (coc_k <= 0: the DOF stop selects nothing), so that the walk can
+    take its leaves without visiting it (docs/maths.md, "The pinhole frame's walk").
+
+    The stop selects a node where 4 (sigma_r2 lam_j + lam_q) <= thr2. sigma_r2 is a
+    weighted mean of the subtree's leaves' r_u r_v / 4, so at least min_geo[r] / 4 (the
+    subtree's smallest r_u r_v, ``subtree_min_geo``); lam_q >= 0; and lam_j, the largest
+    squared stretch of the node's tangent plane on screen, is at least (a_min / U)^2: the
+    plane holds a direction parallel to the image, which moves a_x t_x / U, a_y t_y / U
+    pixels, and every node of the subtree lies in the sphere (center[r], bound[r]), at
+    most U = u + bound from the eye. a_min = min(|a_x|, |a_y|); 0 turns the test off."""
+    wx, wy, wz = center[r, 0], center[r, 1], center[r, 2]
+    u = -(view[8] * wx + view[9] * wy + view[10] * wz + view[11])
+    rad = np.float64(bound[r])
+    if u - rad <= near:
+        return False  # the near plane cuts the sphere: let the visits decide
+    u_far = u + rad
+    return np.float64(min_geo[r]) * a_min * a_min > LEAVES_MARGIN * thr2 * u_far * u_far
+
+
 @numba.njit(cache=True, nogil=True)
-def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, small, model,
-          view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-          color_tol, min_node, cull_backfaces, flags, pending, n_pending):
+def subtree_min_geo(n_surfels, small, order, ru, rv, out):
+    """out[r] = the smallest r_u r_v among the leaves of stored row r's subtree (the rows of a
+    tree whose nodes of at most ``small`` surfels are not stored; small = 1: a row per inner
+    node, the CUDA backend's), for ``leaves_below``. ru, rv: in the surfels' order, read
+    through ``order`` (rv = ru for round surfels). A walk in post-order with an explicit
+    stack: O(N), no per-node array."""
+    stack = np.empty((2 * STACK, 4), np.int64)  # first leaf, count, row, children done
+    values = np.empty(2 * STACK, np.float64)
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = 0, n_surfels, 0, 0
+    top, n_values = 1, 0
+    while top > 0:
+        top -= 1
+        s, m, r, done = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        if m <= small or m == 1:  # not stored (a leaf, or a small node): its leaves
+            v = np.inf
+            for t in range(s, s + m):
+                k = order[t]
+                v = min(v, np.float64(ru[k]) * np.float64(rv[k]))
+            values[n_values] = v
+            n_values += 1
+        elif done:
+            v = min(values[n_values - 1], values[n_values - 2])
+            n_values -= 1
+            values[n_values - 1] = v
+            out[r] = v
+        else:
+            h = m // 2
+            stack[top, 3] = 1  # back to this row once both children are done
+            stack[top + 1, 0], stack[top + 1, 1] = s + h, m - h
+            stack[top + 1, 2], stack[top + 1, 3] = r + 1 + stored_nodes(h, small), 0
+            stack[top + 2, 0], stack[top + 2, 1] = s, h
+            stack[top + 2, 2], stack[top + 2, 3] = r + 1, 0
+            top += 3
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_depth, tree,
+          small, model, min_geo, a_min, view, ax, bx, ay, by, near, width, height, coc_k,
+          inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags, pending,
+          n_pending):
     """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
     given): flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth
-    that need a visit are appended to ``pending`` (rows of node, first leaf, count, row)
-    instead. Returns the new n_pending.
+    that need a visit are appended to ``pending`` (rows of node, first leaf, count, row,
+    leaves) instead. Returns the new n_pending.
+
+    In a frame without blur (coc_k <= 0), in the subtree of a stored node that cannot hold a
+    node of the pixel stop (``leaves_below``; min_geo: ``subtree_min_geo``'s rows, a_min:
+    the smaller screen scale, 0 to visit every node) only the culling tests run, on the
+    nodes they apply to (CULL_TEST_MIN_COUNT surfels and more): the flags are the visits'
+    (root_leaves: the root is inside such a subtree).
 
     tree: the stored attribute arrays (``select_nodes``); model: the surfel arrays that
     ``small_node`` reads for a node of at most ``small`` surfels (``Hierarchy.small``),
@@ -183,50 +261,63 @@ def _walk(root, root_start, root_count, root_row, root_depth, max_depth, tree, s
     order, positions, normals, ru, rv, weight, colors, alpha = model
     # where a small node is put to be visited as a stored row (row 0)
     w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12 = attribute_rows(1)
-    stack = np.empty((STACK, 5), np.int64)  # node, first leaf, count, depth, row
+    stack = np.empty((STACK, 6), np.int64)  # node, first leaf, count, depth, row, leaves
     stack[0, 0] = root
     stack[0, 1] = root_start
     stack[0, 2] = root_count
     stack[0, 3] = root_depth
     stack[0, 4] = root_row
+    stack[0, 5] = root_leaves
+    sharp = coc_k <= 0.0 and a_min > 0.0
     top = 1
     while top > 0:
         top -= 1
         i, s, m, d, r = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], stack[top, 4]
+        leaves = stack[top, 5]
         if d > max_depth:
             pending[n_pending, 0] = i
             pending[n_pending, 1] = s
             pending[n_pending, 2] = m
             pending[n_pending, 3] = r
+            pending[n_pending, 4] = leaves
             n_pending += 1
             continue
         if m == 1:
             flags[i] = SELECT  # a leaf: its surfel (visit_node's first rule)
             continue
-        if m > small:
+        if not leaves and sharp and m > small:
+            leaves = np.int64(1 if leaves_below(r, center, bound, min_geo, view, a_min, near,
+                                                thr2) else 0)
+        if leaves and m < CULL_TEST_MIN_COUNT:
+            # no culling test runs on it, and the near plane misses its sphere (leaves_below)
+            what = DESCEND
+        elif m > small:
             what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
                               lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
                               coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
-                              cull_backfaces)
+                              cull_backfaces, leaves == 0)
         else:
             v = small_node(s, m, order, positions, normals, ru, rv, weight, colors, alpha, False)
             store_attributes(v, 0, w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11, w12)
             what = visit_node(0, m, w0, w1, w2, w3, w4, w5, w9, w10, w12, view, ax, bx, ay, by,
                               near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                              color_tol, min_node, cull_backfaces)
+                              color_tol, min_node, cull_backfaces, True)
         flags[i] = what
         if what == DESCEND:
             stack[top, 3] = d + 1
             stack[top + 1, 3] = d + 1
             stack[top + 1, 4] = r + 1  # the left child (pushed second)
             stack[top, 4] = r + 1 + stored_nodes(m // 2, small)
+            stack[top, 5] = leaves
+            stack[top + 1, 5] = leaves
             top = push_children(stack, top, i, s, m)
     return n_pending
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k,
-                 inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags):
+def select_nodes(n_surfels, tree, small, model, min_geo, a_min, view, ax, bx, ay, by, near,
+                 width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
+                 cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
     node whose children were visited, and 0 for the rest (below a selected or culled node).
     ``cut_nodes`` reads the cut from the flags.
@@ -234,22 +325,25 @@ def select_nodes(n_surfels, tree, small, model, view, ax, bx, ay, by, near, widt
     tree: the hierarchy's (center, bound, extent, position, normal, cone, sigma_r2,
     lod_cov, color_detail), and its ``small``; model: the surfels' (order (the tree's), positions,
     normals, r_u, r_v, weight, colors, opacity), for the nodes the tree does not store
-    (``small_node``)."""
+    (``small_node``); min_geo, a_min: the pinhole frame's walk to the leaves (``_walk``;
+    a_min = 0: every node visited)."""
     flags[:] = 0
-    pending = np.empty((1 << (SPLIT_DEPTH + 1), 4), np.int64)
+    pending = np.empty((1 << (SPLIT_DEPTH + 1), 5), np.int64)
     # both calls pass the same types (no literal constants, which numba compiles a
     # specialisation for): one _walk to compile, not two
     zero = np.int64(0)
-    pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3] = 0, 0, n_surfels, 0
-    n_pending = _walk(pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3], zero,
-                      np.int64(SPLIT_DEPTH - 1), tree, small, model, view, ax, bx, ay, by, near,
-                      width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
-                      cull_backfaces, flags, pending, zero)
-    dummy = np.empty((1, 4), np.int64)
+    pending[0, :] = 0
+    pending[0, 2] = n_surfels
+    n_pending = _walk(pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3], pending[0, 4],
+                      zero, np.int64(SPLIT_DEPTH - 1), tree, small, model, min_geo, a_min, view,
+                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+                      color_tol, min_node, cull_backfaces, flags, pending, zero)
+    dummy = np.empty((1, 5), np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], zero, np.int64(STACK),
-              tree, small, model, view, ax, bx, ay, by, near, width, height, coc_k, inv_focus,
-              cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags, dummy, zero)
+        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], pending[t, 4], zero,
+              np.int64(STACK), tree, small, model, min_geo, a_min, view, ax, bx, ay, by, near,
+              width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
+              cull_backfaces, flags, dummy, zero)
 
 
 @numba.njit(cache=True, nogil=True)
