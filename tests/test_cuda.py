@@ -167,6 +167,36 @@ def test_show_lod_frame_matches_cpu(scene):
 
 
 @needs_cuda
+@pytest.mark.parametrize("small", [1, 3], ids=["full-tree", "compact-tree"])
+def test_pinhole_walk_matches_cpu(scene, small):
+    """A pinhole frame's cut, where leaves_below lets both walks skip the stops' visits (on
+    the whole tree here: a narrow field of view makes every surfel wider than a pixel): the
+    same nodes in the same order, and the same as the CPU's walk that visits every node."""
+    from dofsplat.backends import cuda as bc
+    from dofsplat.lod import build_hierarchy, min_leaf_geo, select_cut
+    from dofsplat.lod.select import leaves_below
+    from dofsplat.render import select
+
+    surfels, wide = scene
+    camera = front_camera(wide.width, wide.height, fov=12.0)
+    tree = build_hierarchy(surfels, small=small)
+    ax, _, ay, _ = camera.screen_coefficients()
+    view = np.ascontiguousarray(camera.camera_from_world()[:3].reshape(12))
+    assert leaves_below(0, tree.center, tree.bound, min_leaf_geo(tree, surfels, small), view,
+                        min(ax, ay), camera.frustum_lrbtn()[4], 1.0)
+    settings = ds.RenderSettings()
+    cpu_src = select(surfels, camera, None, settings, tree)
+    gpu_src = bc.select_cuda(surfels, bc.device_scene(surfels, tree), tree, camera, None,
+                             settings)
+    for name in ("positions", "area", "level"):
+        np.testing.assert_array_equal(getattr(gpu_src, name).copy_to_host(), getattr(cpu_src, name),
+                                      err_msg=name)
+    visits = select_cut(tree, surfels, camera, 0.0, 0.0, settings.cutoff, 1.0, True,
+                        walk_to_leaves=False)
+    assert visits[0].size == cpu_src.size
+
+
+@needs_cuda
 @pytest.mark.parametrize("min_node", [2, 4])
 @pytest.mark.parametrize("small", [1, 3], ids=["full-tree", "compact-tree"])
 def test_lod_cut_and_projection_match_cpu(scene, small, min_node):
