@@ -47,10 +47,9 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     rows in the tree's arrays (-1: not stored)), int32 each (``select_nodes``,
     ``cut_nodes``). min_node: the smallest node the DOF stop draws
     (``RenderSettings.lod_min_node``; 2 here, any node, with the paper's stop as this
-    function's other defaults). walk_to_leaves: in a frame without blur, take the leaves of
-    a subtree that no pixel stop can end without visiting its nodes (``leaves_below``;
-    False visits every node: the same cut, but for leaves under nodes that the visits cull
-    and the projection culls one by one)."""
+    function's other defaults). walk_to_leaves: in a frame without blur, run only the
+    culling tests in a subtree that no pixel stop can end (``select.leaves_below``); False
+    visits every node. The cut is the same either way."""
     import numpy as np
 
     if tree.n_surfels != len(surfels):
@@ -66,8 +65,8 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                                   tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
                                   tree.color_detail),
                  tree.small, model_arrays(tree, surfels), min_geo, a_min, view, ax, bx, ay,
-                 by, near,
-                 camera.width, camera.height, float(coc_k), float(inv_focus), float(cutoff),
+                 by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
+                 float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
                  np.int64(min_node), bool(cull_backfaces), flags)
     return cut_nodes(flags, tree.n_surfels, tree.small)

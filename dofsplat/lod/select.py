@@ -180,8 +180,8 @@ LEAVES_MARGIN = 1.001
 @shared_inline
 def leaves_below(r, center, bound, min_geo, view, a_min, near, thr2):
     """Whether no inner node of the subtree at stored row r can pass the pixel stop, in a
-    frame without blur (coc_k <= 0: the DOF stop selects nothing), so that the walk can
-    take its leaves without visiting it (docs/maths.md, "The pinhole frame's walk").
+    frame without blur (coc_k <= 0: the DOF stop selects nothing), so that the walk runs
+    only the culling tests there (docs/maths.md, "The pinhole frame's walk").
 
     The stop selects a node where 4 (sigma_r2 lam_j + lam_q) <= thr2. sigma_r2 is a
     weighted mean of the subtree's leaves' r_u r_v / 4, so at least min_geo[r] / 4 (the
@@ -213,7 +213,7 @@ def subtree_min_geo(n_surfels, small, order, ru, rv, out):
     while top > 0:
         top -= 1
         s, m, r, done = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
-        if m <= small or m == 1:  # not stored (a leaf, or a small node): its leaves
+        if m <= small:  # not stored (a leaf, or a small node): its leaves
             v = np.inf
             for t in range(s, s + m):
                 k = order[t]
