@@ -297,6 +297,25 @@ def test_binning_equals_a_stable_sort(band):
                                                            np.arange((ty1 - ty0) * n_tx + 1)))
 
 
+def test_tile_row_pairs_count_every_pair_once():
+    """tile_rows_pairs (counted in bin_splats' runs, in parallel) against a count of the
+    tile-splat pairs in numpy: enough splats for several runs, invisible ones among them."""
+    from dofsplat.raster.abuffer import BIN_RUN, tile_rows_pairs
+
+    rng = np.random.default_rng(11)
+    n, tile, n_ty = 3 * BIN_RUN + 77, 16, 9
+    x0, y0 = rng.integers(0, 12 * 16, n), rng.integers(0, n_ty * 16, n)
+    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * 16 - 1),
+                     y0, np.minimum(y0 + rng.integers(0, 40, n), n_ty * 16 - 1)], 1).astype(np.int32)
+    visible = rng.uniform(size=n) > 0.1
+    want = np.zeros(n_ty, np.int64)
+    b = bbox[visible]
+    nx = b[:, 1] // tile - b[:, 0] // tile + 1
+    for lo, hi, w in zip(b[:, 2] // tile, b[:, 3] // tile, nx):
+        want[lo:hi + 1] += w
+    np.testing.assert_array_equal(tile_rows_pairs(bbox, visible, tile, n_ty), want)
+
+
 def test_focus_distance_at_reads_the_visible_surface():
     s = grid_surfels(n=32, spacing=1.0 / 32, z=0.25)
     cam = front_camera(64, 64, distance=2.0)
