@@ -105,6 +105,7 @@ MERGE_REACH = 6.0
 # in parallel: a fixed cut, so the ids do not depend on the thread count
 BIN_RUNS = 64
 BIN_RUN = 16384
+NO_COLUMN = (0.0,) * 8  # a wide kernel's rows start afresh (ewa.column_start's place)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -126,7 +127,6 @@ def tile_rows_pairs(bbox, visible, tile, n_ty):
         for ty in range(n_ty):
             per_row[ty] += counts[c, ty]
     return per_row
-NO_COLUMN = (0.0,) * 8  # a wide kernel's rows start afresh (ewa.column_start's place)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
