@@ -284,7 +284,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "surfaces touch or overlap, visibility is decided K times over a "
                         "smaller blur (4: 0.7-4.8 dB closer to the reference than one pass, "
                         "ahead of the post-filter on every frame of the fidelity suite, for "
-                        "6-11x a pinhole frame at a 40-pixel blur). An isolated bright point "
+                        "6-10x a pinhole frame at a 40-pixel blur). An isolated bright point "
                         "then shows K lobes instead of the aperture's disc or polygon, so the "
                         "default is 1, the paper's single pass (docs/maths.md, \"the lens in "
                         "parts\")")
@@ -306,7 +306,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="draw a node when its own blur is at most K times the depth-of-"
                           "field blur (variance): 0.35 (default) keeps textures and contacts "
                           "close to the exact picture (0-3.6 dB from --no-lod on the fidelity "
-                          "suite, 0.5-10 dB at 1) for 1.5-3.3x a pinhole frame at a 40-pixel "
+                          "suite, 0.5-10 dB at 1) for 1.4-3.2x a pinhole frame at a 40-pixel "
                           "blur; 1 (with --lod-min-node 2) is the paper's rule, faster and "
                           "softer")
     lod.add_argument("--lod-color-tolerance", metavar="T", type=tolerance,
