@@ -34,7 +34,18 @@ def test_merge_fraction_limits():
 def test_resolve_equals_the_sum_over_partitions(seed):
     """The O(n^2) table against the explicit expectation over all 2^(n-1) runs, 1e-12."""
     rng = np.random.default_rng(seed)
-    n = int(rng.integers(1, MAX_SURFACES + 1))
+    check_resolve(rng, int(rng.integers(2, MAX_SURFACES + 1)))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_resolve_of_no_surface_or_one(seed):
+    """resolve_pixel's own path for a pixel with no surface (seed 0) or one (most of a
+    frame's pixels), against the same twin, 1e-12."""
+    check_resolve(np.random.default_rng(100 + seed), min(seed, 1))
+
+
+def check_resolve(rng, n):
+    """resolve_pixel of n random surfaces against slow._resolve."""
     acc = np.zeros((1, MAX_SURFACES, N_ACC))
     surfaces = []
     for i in range(n):

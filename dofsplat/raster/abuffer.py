@@ -40,6 +40,9 @@ S_W, S_WR, S_WG, S_WB, S_WA, S_WD, S_WO, S_ZLO, S_ZHI = range(9)
 N_ACC = 9
 # scratch floats that resolve_pixel needs: sort keys, merge fractions, the composite table
 RESOLVE_SCRATCH = MAX_SURFACES + MAX_SURFACES + 4 * (MAX_SURFACES + 1)
+# items (of 4 or 8 bytes) between two threads' rows of rasterize_band's small buffers: at
+# least a 64-byte cache line, so that no line is written by two threads
+LINE_PAD = 16
 
 # The front pass: splats at least this opaque hide what lies behind them, over their
 # unblurred disk (1/2 x^T F^-1 x < FRONT_CUTOFF: the disk radius is the basis's 2 sigma)
@@ -577,6 +580,28 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
     order: (MAX_SURFACES,) int scratch; scratch: (RESOLVE_SCRATCH,) float scratch.
     """
     n = cnt[p]
+    if n <= 1:
+        # no surface, or one (most pixels of a frame): the general composite below, its
+        # loops run once, without the scratch table (the same arithmetic)
+        alpha = 0.0
+        cr = cg = cb = 0.0
+        d = np.inf
+        w = acc[p, 0, S_W] if n == 1 else 0.0
+        if w > 0.0:
+            d = acc[p, 0, S_WD] / w
+            alpha = layer_alpha(w, acc[p, 0, S_WA], acc[p, 0, S_WO],
+                                sharpness(d, coc_k, inv_focus))
+            cr, cg, cb = alpha * acc[p, 0, S_WR] / w, alpha * acc[p, 0, S_WG] / w, \
+                alpha * acc[p, 0, S_WB] / w
+        trans = 1.0 - alpha
+        out[0] = cr + trans * bg_r
+        out[1] = cg + trans * bg_g
+        out[2] = cb + trans * bg_b
+        out[3] = 1.0 - trans
+        out[4] = d if alpha > 0.0 else np.inf
+        out[5] = w
+        out[6] = n
+        return
     ns = MAX_SURFACES
     for i in range(n):  # insertion sort by mean depth, ties by slot
         d = acc[p, i, S_WD] / acc[p, i, S_W] if acc[p, i, S_W] > 0 else 0.5 * (acc[p, i, S_ZLO] + acc[p, i, S_ZHI])
@@ -677,13 +702,17 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     # each thread's tile buffers, allocated once per band, not once per tile: a tile's
     # A-buffer is 144 KiB, past malloc's mmap threshold, and a fresh mapping per tile (its
     # page faults) cost 30 ms of a 1280 x 720 frame with nothing in it (bench/RESULTS.md)
+    # The small ones are LINE_PAD items longer than they need: a cache line between two
+    # threads' rows. Without it two threads' resolve outputs (written at every pixel)
+    # shared a line, and the 2-thread raster of a frame with nothing in it took as long as
+    # one thread's (bench/RESULTS.md)
     accs = np.empty((pool, TILE * TILE, MAX_SURFACES, N_ACC), np.float64)
-    cnts = np.empty((pool, TILE * TILE), np.int64)
-    cells = np.empty((pool, TILE * TILE), np.int32)  # an aperture kernel's table cells
-    fracs = np.empty((pool, 2, TILE * TILE), np.float32)
-    ress = np.empty((pool, 7), np.float64)
-    orders = np.empty((pool, MAX_SURFACES), np.int64)
-    scratches = np.empty((pool, RESOLVE_SCRATCH), np.float64)
+    cnts = np.empty((pool, TILE * TILE + LINE_PAD), np.int64)
+    cells = np.empty((pool, TILE * TILE + LINE_PAD), np.int32)  # an aperture kernel's table cells
+    fracs = np.empty((pool, 2, TILE * TILE + LINE_PAD), np.float32)
+    ress = np.empty((pool, 7 + LINE_PAD), np.float64)
+    orders = np.empty((pool, MAX_SURFACES + LINE_PAD), np.int64)
+    scratches = np.empty((pool, RESOLVE_SCRATCH + LINE_PAD), np.float64)
     n_rows = n_tiles // n_tx
     stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
@@ -693,7 +722,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         px0, py0 = tx * TILE, ty * TILE
         px1, py1 = min(px0 + TILE, width) - 1, min(py0 + TILE, height) - 1
         me = numba.get_thread_id()
-        acc, cnt, cell, frac = accs[me], cnts[me], cells[me], fracs[me]
+        acc, cnt, cell, frac = accs[me], cnts[me, :TILE * TILE], cells[me], fracs[me]
         cnt[:] = 0
         frags = 0
         overflows = 0
