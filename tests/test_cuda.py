@@ -258,7 +258,7 @@ def test_tile_lists_match_cpu(scene):
     src = from_surfels(surfels)
     _, bbox, visible = project(src, shade_surfels(src, camera, settings), camera, _lens(2.0), settings)
     n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
-    offsets, ids = bin_splats(bbox, visible, TILE, n_tx, 0, n_ty)
+    offsets, ids = bin_splats(bbox, visible, n_tx, 0, n_ty)
     g_offsets, g_ids, n_visible = bc.bin_cuda(bc._upload(bbox), bc._upload(visible),
                                               camera.width, camera.height)
     np.testing.assert_array_equal(g_offsets.copy_to_host(), offsets)

@@ -278,20 +278,20 @@ def test_binning_equals_a_stable_sort(band):
     """bin_splats (runs of splats counted and scattered in parallel) lists each tile's
     splats in increasing index, as a stable sort of the tile-splat pairs does; enough splats
     for several runs, invisible ones among them, a band of tile rows."""
-    from dofsplat.raster.abuffer import BIN_RUN, bin_splats
+    from dofsplat.raster.abuffer import BIN_RUN, TILE, bin_splats
 
     rng = np.random.default_rng(7)
-    n, tile, n_tx, ty0, ty1 = 3 * BIN_RUN + 123, 16, 12, *band
-    x0, y0 = rng.integers(0, 12 * 16, n), rng.integers(0, 9 * 16, n)
-    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * 16 - 1),
-                     y0, np.minimum(y0 + rng.integers(0, 40, n), 9 * 16 - 1)], 1).astype(np.int32)
+    n, tile, n_tx, ty0, ty1 = 3 * BIN_RUN + 123, TILE, 12, *band
+    x0, y0 = rng.integers(0, 12 * tile, n), rng.integers(0, 9 * tile, n)
+    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * tile - 1),
+                     y0, np.minimum(y0 + rng.integers(0, 40, n), 9 * tile - 1)], 1).astype(np.int32)
     visible = rng.uniform(size=n) > 0.1
     pairs = [((ty - ty0) * n_tx + tx, k) for k in np.flatnonzero(visible)
              for ty in range(max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1) + 1)
              for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1)]
     tiles = np.array([t for t, _ in pairs])
     order = np.argsort(tiles, kind="stable")
-    offsets, ids = bin_splats(bbox, visible, tile, n_tx, ty0, ty1)
+    offsets, ids = bin_splats(bbox, visible, n_tx, ty0, ty1)
     np.testing.assert_array_equal(ids, np.array([k for _, k in pairs])[order])
     np.testing.assert_array_equal(offsets, np.searchsorted(tiles[order],
                                                            np.arange((ty1 - ty0) * n_tx + 1)))
@@ -300,20 +300,20 @@ def test_binning_equals_a_stable_sort(band):
 def test_tile_row_pairs_count_every_pair_once():
     """tile_rows_pairs (counted in bin_splats' runs, in parallel) against a count of the
     tile-splat pairs in numpy: enough splats for several runs, invisible ones among them."""
-    from dofsplat.raster.abuffer import BIN_RUN, tile_rows_pairs
+    from dofsplat.raster.abuffer import BIN_RUN, TILE, tile_rows_pairs
 
     rng = np.random.default_rng(11)
-    n, tile, n_ty = 3 * BIN_RUN + 77, 16, 9
-    x0, y0 = rng.integers(0, 12 * 16, n), rng.integers(0, n_ty * 16, n)
-    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * 16 - 1),
-                     y0, np.minimum(y0 + rng.integers(0, 40, n), n_ty * 16 - 1)], 1).astype(np.int32)
+    n, tile, n_ty = 3 * BIN_RUN + 77, TILE, 9
+    x0, y0 = rng.integers(0, 12 * tile, n), rng.integers(0, n_ty * tile, n)
+    bbox = np.stack([x0, np.minimum(x0 + rng.integers(0, 40, n), 12 * tile - 1),
+                     y0, np.minimum(y0 + rng.integers(0, 40, n), n_ty * tile - 1)], 1).astype(np.int32)
     visible = rng.uniform(size=n) > 0.1
     want = np.zeros(n_ty, np.int64)
     b = bbox[visible]
     nx = b[:, 1] // tile - b[:, 0] // tile + 1
     for lo, hi, w in zip(b[:, 2] // tile, b[:, 3] // tile, nx):
         want[lo:hi + 1] += w
-    np.testing.assert_array_equal(tile_rows_pairs(bbox, visible, tile, n_ty), want)
+    np.testing.assert_array_equal(tile_rows_pairs(bbox, visible, n_ty), want)
 
 
 def test_focus_distance_at_reads_the_visible_surface():

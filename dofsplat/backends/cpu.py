@@ -376,7 +376,7 @@ def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings,
     from ..raster.abuffer import TILE, tile_rows_pairs
 
     n_ty = -(-camera.height // TILE)
-    per_row = tile_rows_pairs(bbox, visible, TILE, n_ty)
+    per_row = tile_rows_pairs(bbox, visible, n_ty)
     if max_splats is not None:
         # splats touching tile rows a..b-1: those that begin at or before b - 1, less
         # those that end before a
@@ -443,7 +443,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
             apply_visibility(sp, vis, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
             front_ms += _ms(t)
         t = time.perf_counter()
-        offsets, ids = bin_splats(bb, vis, TILE, n_tx, ty0, ty1)
+        offsets, ids = bin_splats(bb, vis, n_tx, ty0, ty1)
         bin_ms += _ms(t)
         t = time.perf_counter()
         tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
@@ -482,7 +482,7 @@ def front_chunk(splats, visible, camera: Camera, front, margin: int) -> None:
     use = np.empty(n, np.bool_)
     front_boxes(splats, visible, fw, fh, margin, box, use)
     n_tx = -(-fw // TILE)
-    offsets, ids = bin_splats(box, use, TILE, n_tx, 0, -(-fh // TILE))
+    offsets, ids = bin_splats(box, use, n_tx, 0, -(-fh // TILE))
     front_band(splats, offsets, ids, n_tx, fw, fh, margin, front)
 
 

@@ -112,7 +112,7 @@ NO_COLUMN = (0.0,) * 8  # a wide kernel's rows start afresh (ewa.column_start's 
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def tile_rows_pairs(bbox, visible, tile, n_ty):
+def tile_rows_pairs(bbox, visible, n_ty):
     """Tile-splat pairs per tile row, (n_ty,) int64: to cut the image into memory-bounded
     bands. Counted in bin_splats' runs, in parallel (serial, it was 2 ms of the demo's
     75 ms pinhole frame on two threads), and summed."""
@@ -122,8 +122,8 @@ def tile_rows_pairs(bbox, visible, tile, n_ty):
     for c in numba.prange(runs):
         for k in range(c * n // runs, (c + 1) * n // runs):
             if visible[k]:
-                nx = bbox[k, 1] // tile - bbox[k, 0] // tile + 1
-                for ty in range(bbox[k, 2] // tile, bbox[k, 3] // tile + 1):
+                nx = bbox[k, 1] // TILE - bbox[k, 0] // TILE + 1
+                for ty in range(bbox[k, 2] // TILE, bbox[k, 3] // TILE + 1):
                     counts[c, ty] += nx
     per_row = np.zeros(n_ty, np.int64)
     for c in range(runs):
@@ -133,8 +133,11 @@ def tile_rows_pairs(bbox, visible, tile, n_ty):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
-    """Counting sort of tile-splat pairs for tile rows ty0..ty1-1.
+def bin_splats(bbox, visible, n_tx, ty0, ty1):
+    """Counting sort of tile-splat pairs (tiles of TILE x TILE pixels) for tile rows
+    ty0..ty1-1. TILE is a constant of the compiled code, not an argument: a division by
+    it is a shift, and a division by an argument cost this pass and tile_rows_pairs 1.6 x
+    the time (the pinhole plane's 2.75 against 1.70 ms, bench/RESULTS.md).
 
     Returns (offsets, ids): the splats of local tile t = (ty - ty0) * n_tx + tx are
     ids[offsets[t]:offsets[t+1]], in increasing splat index. The splats are cut into runs,
@@ -146,7 +149,7 @@ def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
     counts = np.zeros((runs, n_tiles), np.int64)
     ids = np.empty(0, np.int32)
     for c in numba.prange(runs):
-        bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, False)
+        bin_run(c, runs, bbox, visible, n_tx, ty0, ty1, counts, ids, False)
     # each run's first slot in each tile (counts becomes the cursors)
     offsets = np.empty(n_tiles + 1, np.int64)
     total = 0
@@ -159,21 +162,21 @@ def bin_splats(bbox, visible, tile, n_tx, ty0, ty1):
     offsets[n_tiles] = total
     ids = np.empty(total, np.int32)
     for c in numba.prange(runs):
-        bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, True)
+        bin_run(c, runs, bbox, visible, n_tx, ty0, ty1, counts, ids, True)
     return offsets, ids
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def bin_run(c, runs, bbox, visible, tile, n_tx, ty0, ty1, counts, ids, scatter):
+def bin_run(c, runs, bbox, visible, n_tx, ty0, ty1, counts, ids, scatter):
     """Run c of ``bin_splats``: its splats' tile-splat pairs counted into counts[c], or with
     ``scatter`` written to ids at the cursors counts[c] (which advance)."""
     n = bbox.shape[0]
     for k in range(c * n // runs, (c + 1) * n // runs):
         if not visible[k]:
             continue
-        a, b = max(bbox[k, 2] // tile, ty0), min(bbox[k, 3] // tile, ty1 - 1)
+        a, b = max(bbox[k, 2] // TILE, ty0), min(bbox[k, 3] // TILE, ty1 - 1)
         for ty in range(a, b + 1):
-            for tx in range(bbox[k, 0] // tile, bbox[k, 1] // tile + 1):
+            for tx in range(bbox[k, 0] // TILE, bbox[k, 1] // TILE + 1):
                 t = (ty - ty0) * n_tx + tx
                 if scatter:
                     ids[counts[c, t]] = k
