@@ -353,6 +353,14 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     np.testing.assert_array_equal(counts, stored.count[chosen])
     np.testing.assert_array_equal(rows, stored.rows[chosen])
     assert np.sum(rows == -1) > np.sum(counts == 1)  # small nodes in the cut too
+    # read in parallel runs of node numbers (cut_runs; cut_nodes makes one run of a tree
+    # this small): the same arrays wherever the runs begin, runs cutting subtrees
+    from dofsplat.lod.select import cut_runs
+    assert len(flags) > 64 * 20
+    for runs in (2, 7, 64):
+        for got, want in zip(cut_runs(flags, stored.n_surfels, stored.small, runs),
+                             (nodes, first, counts, rows)):
+            np.testing.assert_array_equal(got, want)
     inner = chosen[tree.count[chosen] > 1]
     assert inner.size > 20  # the blur lets the cut stop above the leaves
     covered = np.zeros(len(s), int)
