@@ -667,18 +667,29 @@ def test_no_node_below_a_pinhole_walk_passes_the_pixel_stop(bumpy, small, eye, w
 @pytest.mark.parametrize("small", [1, 3], ids=["full", "compact"])
 @pytest.mark.parametrize("eye, width, height", PINHOLE_VIEWS)
 @pytest.mark.parametrize("cull", [True, False], ids=["cull", "two-sided"])
-def test_the_pinhole_walk_cuts_what_the_visits_cut(bumpy, small, eye, width, height, cull):
+def test_the_pinhole_walk_cuts_what_the_visits_cut(bumpy, small, eye, width, height, cull,
+                                                   monkeypatch):
     """The walk with leaves_below (the default) and the walk that visits every node give the
-    same cut, row for row, culled subtrees included."""
-    from dofsplat.lod import select_cut
+    same cut, row for row, culled subtrees included; and so do the walk's flags read in
+    parallel runs (cut_runs), whose boundaries cut the subtrees flagged LEAVES + m."""
+    from dofsplat import lod
+    from dofsplat.lod.select import LEAVES, cut_runs
 
+    flags = []
+    cut_nodes = lod.cut_nodes
+    monkeypatch.setattr(lod, "cut_nodes", lambda f, n, small: flags.append(f.copy())
+                        or cut_nodes(f, n, small))
     s = bumpy[0]
     tree = build_hierarchy(s, small=small)
     cam = ds.Camera(eye=eye, target=(0, 0.3, 0), width=width, height=height, fov_y=50)
-    fast = select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull)
-    slow = select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull, walk_to_leaves=False)
+    fast = lod.select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull)
+    slow = lod.select_cut(tree, s, cam, 0.0, 0.0, 2.5, 1.0, cull, walk_to_leaves=False)
     for a, b in zip(fast, slow):
         np.testing.assert_array_equal(a, b)
+    assert (np.sum(flags[0] > LEAVES) > 0) == (eye[2] != 6.0)  # the far view: no such node
+    for runs in (2, 7, 64):
+        for a, b in zip(cut_runs(flags[0], tree.n_surfels, tree.small, runs), slow):
+            np.testing.assert_array_equal(a, b)
     if width < 64:  # the grazing views: the pixel stop's nodes beside the leaves' subtrees
         assert 0 < np.sum(slow[2] > 1) < slow[0].size
 

@@ -48,6 +48,9 @@ from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigen
                          screen_lod_variance, shared, shared_inline, tangent_from_normal)
 
 CULL, SELECT, DESCEND = 3, 1, 2  # also the flags of select_nodes (0: not visited)
+# ... and LEAVES + m: a node of m < CULL_TEST_MIN_COUNT surfels whose cut is its m leaves,
+# which the pinhole walk does not visit (``_walk``; ``cut_run`` lists them)
+LEAVES = 4
 SPLIT_DEPTH = 10  # 1024 subtrees for the parallel walk
 STACK = 96  # the median split keeps depth <= ceil(log2 N) + 1, far below this
 # frustum and normal-cone culling cost square roots and inverse trigonometric functions:
@@ -241,14 +244,15 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
           inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags, pending,
           n_pending):
     """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
-    given): flags each node visited (SELECT, CULL or DESCEND); nodes deeper than max_depth
-    that need a visit are appended to ``pending`` (rows of node, first leaf, count, row,
-    leaves) instead. Returns the new n_pending.
+    given): flags each node visited (SELECT, CULL, DESCEND or LEAVES + m); nodes deeper
+    than max_depth that need a visit are appended to ``pending`` (rows of node, first leaf,
+    count, row, leaves) instead. Returns the new n_pending.
 
     In a frame without blur (coc_k <= 0), in the subtree of a stored node that cannot hold a
     node of the pixel stop (``leaves_below``; min_geo: ``subtree_min_geo``'s rows, a_min:
     the smaller screen scale, 0 to visit every node) only the culling tests run, on the
-    nodes they apply to (CULL_TEST_MIN_COUNT surfels and more): the flags are the visits'
+    nodes they apply to (CULL_TEST_MIN_COUNT surfels and more), and a node of fewer
+    surfels is flagged LEAVES + m without a visit below it: the cut is the visits'
     (root_leaves: the root is inside such a subtree).
 
     tree: the stored attribute arrays (``select_nodes``); model: the surfel arrays that
@@ -289,9 +293,13 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
             leaves = np.int64(1 if leaves_below(r, center, bound, min_geo, view, a_min, near,
                                                 thr2) else 0)
         if leaves and m < CULL_TEST_MIN_COUNT:
-            # no culling test runs on it, and the near plane misses its sphere (leaves_below)
-            what = DESCEND
-        elif m > small:
+            # no culling test runs on it or below it, and the near plane misses its sphere
+            # (leaves_below): its cut is its leaves, flagged at once instead of 2m - 1
+            # visits (the pinhole plane's walk visited 383,691 of its 524,287 nodes;
+            # bench/RESULTS.md)
+            flags[i] = LEAVES + m
+            continue
+        if m > small:
             what = visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2,
                               lod_cov, color_detail, view, ax, bx, ay, by, near, width, height,
                               coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
@@ -319,8 +327,9 @@ def select_nodes(n_surfels, tree, small, model, min_geo, a_min, view, ax, bx, ay
                  width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
                  cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
-    node whose children were visited, and 0 for the rest (below a selected or culled node).
-    ``cut_nodes`` reads the cut from the flags.
+    node whose children were visited, LEAVES + m for a node of m surfels whose cut is its
+    leaves, found without visiting them (the pinhole walk, ``_walk``), and 0 for the rest
+    (below a selected, culled or LEAVES node). ``cut_nodes`` reads the cut from the flags.
 
     tree: the hierarchy's (center, bound, extent, position, normal, cone, sigma_r2,
     lod_cov, color_detail), and its ``small``; model: the surfels' (order (the tree's), positions,
@@ -374,8 +383,11 @@ def cut_runs(flags, n_surfels, small, runs):
     for c in numba.prange(runs):
         k = 0
         for i in range(c * n // runs, (c + 1) * n // runs):
-            if flags[i] == SELECT:
+            f = flags[i]
+            if f == SELECT:
                 k += 1
+            elif f > LEAVES:
+                k += f - LEAVES  # a node's leaves, listed by the run that holds its number
         first[c + 1] = k
     for c in range(runs):
         first[c + 1] += first[c]
@@ -414,6 +426,21 @@ def cut_run(flags, n_surfels, small, lo, hi, t, nodes, start, count, row):
                 count[t] = m
                 row[t] = r if m > small else -1
                 t += 1
+        elif f > LEAVES:
+            if i >= lo:  # its leaves, in preorder, from the stack's free rows up
+                stack[top, 0], stack[top, 1], stack[top, 2] = i, s, m
+                base, top = top, top + 1
+                while top > base:
+                    top -= 1
+                    j, sj, mj = stack[top, 0], stack[top, 1], stack[top, 2]
+                    if mj == 1:
+                        nodes[t] = j
+                        start[t] = sj
+                        count[t] = 1
+                        row[t] = -1
+                        t += 1
+                    else:
+                        top = push_children(stack, top, j, sj, mj)
         elif f == DESCEND:
             stack[top + 1, 3] = r + 1
             stack[top, 3] = r + 1 + stored_nodes(m // 2, small)
