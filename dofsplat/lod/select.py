@@ -373,10 +373,10 @@ def cut_nodes(flags, n_surfels, small):
 def cut_runs(flags, n_surfels, small, runs):
     """``cut_nodes`` with the flags cut into ``runs`` runs of node numbers, in parallel. A
     node's subtree is a run of numbers (preorder: node i of m surfels and its subtree are
-    i .. i + 2m - 2), so the selected nodes, in preorder, are those flagged SELECT in
-    increasing number: each run counts its own, and then walks the tree again (no per-node
-    first leaf or count is stored) into its slots, entering only the subtrees that reach
-    into it (``cut_run``). It was one serial walk: 0.8 ms of the pinhole plane's 44 ms
+    i .. i + 2m - 2), so the selected nodes, in preorder, are those flagged SELECT and the m
+    leaves of those flagged LEAVES + m, in increasing number: each run counts its own, and
+    then walks the tree again (no per-node first leaf or count is stored) into its slots,
+    entering only the subtrees that reach into it (``cut_run``). It was one serial walk: 0.8 ms of the pinhole plane's 44 ms
     frame on two threads, where every other stage runs in parallel."""
     n = flags.shape[0]
     first = np.zeros(runs + 1, np.int64)
@@ -404,9 +404,9 @@ def cut_runs(flags, n_surfels, small, runs):
 
 @numba.njit(cache=True, nogil=True)
 def cut_run(flags, n_surfels, small, lo, hi, t, nodes, start, count, row):
-    """The selected nodes numbered lo .. hi - 1, in preorder, into slots t, t + 1, ... of
-    ``cut_runs``' arrays: a walk of the visited part of the tree that skips the subtrees
-    numbered wholly outside the run."""
+    """The selected nodes numbered lo .. hi - 1, and the leaves of the LEAVES nodes
+    numbered so, in preorder, into slots t, t + 1, ... of ``cut_runs``' arrays: a walk of
+    the visited part of the tree that skips the subtrees numbered wholly outside the run."""
     stack = np.empty((STACK, 4), np.int64)
     stack[0, 0] = 0
     stack[0, 1] = 0
