@@ -27,8 +27,9 @@ A node whose mean normal faces away from the eye while its cone does not is neve
 selected (its flat splat would be a back face): the traversal descends instead.
 
 In a frame without blur only the pixel stop selects inner nodes, and in a subtree none of
-whose inner nodes can pass it (``leaves_below``) the walk runs the culling tests alone:
-the same flags, for a few integer operations on most nodes (docs/maths.md, "The pinhole
+whose inner nodes can pass it (``leaves_below``) the walk runs the culling tests alone,
+and flags a node too small for them as "its leaves" (LEAVES + m) without going below it:
+the same cut, for a few integer operations on most nodes (docs/maths.md, "The pinhole
 frame's walk").
 
 The tree's top levels are walked serially down to ``SPLIT_DEPTH``; the subtrees below are
