@@ -11,7 +11,8 @@ renders every scene of ``bench/profile.py`` (this checkout's) pinhole and at its
 aperture with the default settings: a warm-up frame, then the median of ``--repeat`` frames,
 timed whole. After ``--runs`` rounds the table gives the median of the runs' medians per
 checkout, and each one's ratio to the first. ``--images`` also compares every frame's image
-and depth map with the first checkout's, bit for bit. Alternating rounds spread this
+and depth map with the first checkout's, bit for bit, and gives those that differ their
+largest difference and PSNR (the issue's bound: 60 dB). Alternating rounds spread this
 machine's drift over all checkouts; the spread between rounds is the noise to quote.
 """
 
@@ -32,6 +33,20 @@ from pathlib import Path
 import numpy as np
 
 BENCH = Path(__file__).resolve().parent
+
+
+def difference(a: np.ndarray, b: np.ndarray) -> str:
+    """How far image b is from a: the largest difference and the PSNR over a's range (the
+    issue's bound is 60 dB; a depth map's range is its finite depths')."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    both = np.isfinite(a) & np.isfinite(b)
+    if not np.array_equal(np.isfinite(a), np.isfinite(b)):
+        return f"{int((np.isfinite(a) != np.isfinite(b)).sum())} pixels finite in one only"
+    err = np.abs(a[both] - b[both])
+    peak = max(float(a[both].max() - min(a[both].min(), 0.0)), 1e-30) if both.any() else 1.0
+    mse = float(np.mean(err ** 2)) if err.size else 0.0
+    psnr = "inf" if mse == 0.0 else f"{10.0 * np.log10(peak * peak / mse):.1f}"
+    return f"largest difference {err.max() if err.size else 0.0:.3g}, PSNR {psnr} dB"
 
 
 def frames(root: str, scenes: list[str], repeat: int, out: str) -> None:
@@ -108,6 +123,8 @@ def main(argv=None) -> int:
                   f"to {labels[0]}'s bit for bit"
                   + ("" if len(same) == len(first.files)
                      else "; differ: " + ", ".join(sorted(set(first.files) - set(same)))))
+            for key in sorted(set(first.files) - set(same)):
+                print(f"  {key}: {difference(first[key], other[key])}")
     shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
