@@ -142,13 +142,18 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         if radius ** 2 < SMALL_APERTURE ** 2 * np.linalg.eigvalsh(W).min():
             W = W + radius ** 2 / 4 * np.eye(2)  # a small aperture: its moment-matched Gaussian
             radius = 0.0
-        hx, hy = math.sqrt(2 * c * W[0, 0]) + abs(radius), math.sqrt(2 * c * W[1, 1]) + abs(radius)
-        x0, x1 = math.floor(m[0] - hx - 0.5), math.ceil(m[0] + hx - 0.5)
-        y0, y1 = math.floor(m[1] - hy - 0.5), math.ceil(m[1] + hy - 0.5)
+        hx, hy = math.sqrt(2 * c * W[0, 0]), math.sqrt(2 * c * W[1, 1])
+        if radius != 0:
+            hx, hy = support_extent(W, radius, math.sqrt(2 * c))
+        # the pixel centres within hx, hy of the mean
+        x0, x1 = math.ceil(m[0] - hx - 0.5), math.floor(m[0] + hx - 0.5)
+        y0, y1 = math.ceil(m[1] - hy - 0.5), math.floor(m[1] + hy - 0.5)
+        if x0 > camera.width or x1 < -1 or y0 > camera.height or y1 < -1:
+            continue  # more than a pixel outside the image
         cx0, cx1 = max(x0, 0), min(x1, camera.width - 1)
         cy0, cy1 = max(y0, 0), min(y1, camera.height - 1)
         if cx0 > cx1 or cy0 > cy1:
-            continue
+            cx0, cx1, cy0, cy1 = 0, -1, 0, -1  # within a pixel: no fragment, a front disk
         Wi = np.linalg.inv(W)
         floor = taper if np.trace(Sq) > 0 else 0.0
         area_px = abs(np.linalg.det(J)) * area[k]
@@ -211,6 +216,22 @@ def _sym3(c):
     """The symmetric 3x3 matrix of a 6-vector (xx, xy, xz, yy, yz, zz)."""
     xx, xy, xz, yy, yz, zz = (float(v) for v in c)
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+def support_extent(W, radius, u_c):
+    """Half-widths (x, y) of a box round an aperture kernel's support (bokeh.support_bbox):
+    along a direction n the support ends within |R| + u_c sqrt(n^T W n) of its centre, a
+    curve inside the ellipse of semi-axes g1 = |R| + u_c sqrt(l1) and g1^2 / sqrt(2 g1^2 -
+    g2^2) along W's eigenvectors (g2^2 = R^2 + |R| u_c sqrt(l1) + u_c^2 l2 + |R| u_c l2 /
+    sqrt(l1); docs/maths.md, "The support"), and inside the circle of |R| + u_c sqrt(l1)."""
+    lam, vec = np.linalg.eigh(W)  # ascending: l2, l1
+    l2, l1 = max(lam[0], 0.0), lam[1]
+    r = abs(radius)
+    g1 = r + u_c * math.sqrt(l1)
+    g2sq = r * r + r * u_c * math.sqrt(l1) + u_c * u_c * l2 + r * u_c * l2 / math.sqrt(l1)
+    axes = np.array([g1, g1 * g1 / math.sqrt(2 * g1 * g1 - g2sq)])  # along vec[:, 1], vec[:, 0]
+    ext = np.sqrt((axes[0] * vec[:, 1]) ** 2 + (axes[1] * vec[:, 0]) ** 2)
+    return min(ext[0], g1), min(ext[1], g1)
 
 
 def _exponents(m, Wi, x0, x1, y0, y1):

@@ -342,3 +342,51 @@ def test_support_conic_contains_the_kernel(blades):
                     outside = max(outside, v)
         assert peak > 0.0
         assert outside == 0.0, (case, outside / peak)
+
+
+@pytest.mark.parametrize("blades", [0, 6])
+def test_support_bbox_holds_every_pixel_the_kernel_draws(blades):
+    """``bokeh.support_bbox`` holds every pixel centre where an aperture kernel is not 0
+    (found over a window 6 px wider than the kernel's reach), for the kernels of
+    ``test_support_conic_contains_the_kernel`` and two more, at three subpixel centres. The
+    Gaussian's box widened by |R| (the box before 2026-11-27, rounded outwards) missed
+    pixels of wide apertures' kernels elongated along a diagonal, where the support reaches
+    past it: the last two here (W of the lion's frame at A = 2, where 54 of its 36 M
+    fragments fell outside that box, at up to 3e-4 of the kernel's value)."""
+    from dofsplat.splat.bokeh import aperture_value, support_bbox
+
+    table, u_c = aperture_table(CUTOFF), math.sqrt(2 * CUTOFF)
+    normals = blade_normals(blades, 0.0)
+    missed_before = 0
+    for l1, l2, radius, turn in [(9.0, 0.45, 6.0, 0.4), (4.0, 0.07, -20.0, 1.0),
+                                 (12.0, 2.0, 3.0, -0.3), (1.2, 0.06, 8.0, 2.2),
+                                 (16.0, 0.8, -12.0, 0.8), (1.0, 1.0, 2.0, 0.0),
+                                 (33.17, 1.9, 29.0, 1.178), (28.48, 1.02, -30.3, 1.351)]:
+        c, s = math.cos(turn), math.sin(turn)
+        rot = np.array([[c, -s], [s, c]])
+        W = rot @ np.diag([l1, l2]) @ rot.T
+        Wi = np.linalg.inv(W)
+        mix = edge_mix(radius, W[0, 0], W[1, 1])
+        reach = abs(radius) + u_c * math.sqrt(l1)
+        for mx, my in [(50.5, 40.5), (50.13, 40.71), (50.776, 40.334)]:
+            x0, x1, y0, y1 = support_bbox(mx, my, W[0, 0], W[0, 1], W[1, 1], radius, u_c)
+            hx = math.sqrt(2 * CUTOFF * W[0, 0]) + abs(radius)
+            hy = math.sqrt(2 * CUTOFF * W[1, 1]) + abs(radius)
+            old = (math.floor(mx - hx - 0.5), math.ceil(mx + hx - 0.5),
+                   math.floor(my - hy - 0.5), math.ceil(my + hy - 0.5))
+            span = int(reach) + 6
+            drawn = 0
+            for i in range(int(my) - span, int(my) + span + 1):
+                for j in range(int(mx) - span, int(mx) + span + 1):
+                    dx, dy = j + 0.5 - mx, i + 0.5 - my
+                    q2 = Wi[0, 0] * dx * dx + 2 * Wi[0, 1] * dx * dy + Wi[1, 1] * dy * dy
+                    p = W[0, 0] * dx * dx + 2 * W[0, 1] * dx * dy + W[1, 1] * dy * dy
+                    if aperture_value(q2, p, dx, dy, radius, mix, normals, table, u_c,
+                                      Wi[0, 0], W[0, 0]) > 0.0:
+                        drawn += 1
+                        assert x0 <= j <= x1 and y0 <= i <= y1, (l1, l2, radius, turn, i, j)
+                        if not (old[0] <= j <= old[1] and old[2] <= i <= old[3]):
+                            missed_before += 1
+            assert drawn > 0
+    if blades == 0:  # (a hexagon's edge lies inside the disc: these reach no farther)
+        assert missed_before > 0

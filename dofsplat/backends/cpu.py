@@ -380,8 +380,11 @@ def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings,
     if max_splats is not None:
         # splats touching tile rows a..b-1: those that begin at or before b - 1, less
         # those that end before a
-        first = np.bincount(bbox[visible, 2] // TILE, minlength=n_ty).cumsum()
-        last = np.concatenate([[0], np.bincount(bbox[visible, 3] // TILE, minlength=n_ty).cumsum()])
+        # (a visible splat's box may be empty, (0, -1, 0, -1): it draws no fragment, only a
+        # disk into the front map; splat/project.py)
+        drawn = visible & (bbox[:, 2] <= bbox[:, 3])
+        first = np.bincount(bbox[drawn, 2] // TILE, minlength=n_ty).cumsum()
+        last = np.concatenate([[0], np.bincount(bbox[drawn, 3] // TILE, minlength=n_ty).cumsum()])
     bands, start, acc = [], 0, 0
     for ty in range(n_ty):
         if (acc and acc + per_row[ty] > settings.max_tile_pairs) or (

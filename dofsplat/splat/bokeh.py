@@ -44,7 +44,7 @@ import math
 import numba
 import numpy as np
 
-from .ewa import shared
+from .ewa import pixel_bbox, shared
 
 # the per-fragment functions are inlined at numba's level, like the Gaussian's forward
 # differences: a call per fragment costs as much as the kernel
@@ -318,6 +318,21 @@ def support_conic(w11, w12, w22, radius, u_c):
     ia = 1.0 / (g1 * g1)
     ib = (2.0 * g1 * g1 - g2sq) / (g1 * g1 * g1 * g1)  # 1 / b^2
     return ia * vx * vx + ib * vy * vy, (ia - ib) * vx * vy, ia * vy * vy + ib * vx * vx
+
+
+@shared
+def support_bbox(mx, my, w11, w12, w22, radius, u_c):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of an aperture kernel's support: the
+    box of ``support_conic``'s ellipse, cut to the circle of its reach |R| + u_c sqrt(l1)
+    (l1: W's larger eigenvalue). Both contain the support. (The Gaussian's box,
+    sqrt(2 c W_11) + |R| wide, does not: where the kernel's edge follows the aperture,
+    its support reaches past it, by up to 4 px in the suite's blurred frames.)"""
+    b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
+    det = b11 * b22 - b12 * b12
+    half_tr = 0.5 * (w11 + w22)
+    diff = 0.5 * (w11 - w22)
+    reach = abs(radius) + u_c * math.sqrt(half_tr + math.sqrt(diff * diff + w12 * w12))
+    return pixel_bbox(mx, my, min(math.sqrt(b22 / det), reach), min(math.sqrt(b11 / det), reach))
 
 
 MASS_ANGLES = 16  # directions of each of the two families of aperture_mass (x 2: polygons)

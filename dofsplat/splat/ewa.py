@@ -387,8 +387,9 @@ COORD_LIMIT = 1.0e9  # clamp screen coordinates before converting them to int
 
 
 # rows of a bbox narrower than this are scanned whole: cheaper than solving for the span
-# (a square root, and two exps to restart the forward differences, per row: most pinhole
-# kernels are 8-11 pixels wide, and 8 here took 1.9 x as long to normalise them)
+# (a square root, and two exps to restart the forward differences, per row: 8 here took
+# 1.9 x as long to normalise the pinhole kernels, then 8-11 pixels wide in the box rounded
+# outwards; kernel_bbox's)
 NARROW_BBOX = 16
 # kernel_pixel_sum's recurrence down the rows of a narrow kernel: at most this many rows
 # (taller kernels restart each row). Its q stays far from exp's range: W >= I (the
@@ -416,16 +417,24 @@ def row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1):
 
 
 @shared
-def kernel_bbox(mx, my, w11, w22, cutoff, radius):
-    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the kernel truncated at cutoff,
-    widened by the aperture's radius (0 for the paper's Gaussian)."""
-    hx = math.sqrt(2.0 * cutoff * w11) + radius
-    hy = math.sqrt(2.0 * cutoff * w22) + radius
-    x0 = math.floor(max(mx - hx - 0.5, -COORD_LIMIT))
-    x1 = math.ceil(min(mx + hx - 0.5, COORD_LIMIT))
-    y0 = math.floor(max(my - hy - 0.5, -COORD_LIMIT))
-    y1 = math.ceil(min(my + hy - 0.5, COORD_LIMIT))
+def pixel_bbox(mx, my, hx, hy):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the pixel centres (j + 1/2,
+    i + 1/2) that lie within hx, hy of (mx, my) along each axis: the pixels that a kernel
+    reaching that far may draw, and no others (a centre exactly hx away is on the kernel's
+    cutoff, where it draws nothing)."""
+    x0 = math.ceil(max(mx - hx - 0.5, -COORD_LIMIT))
+    x1 = math.floor(min(mx + hx - 0.5, COORD_LIMIT))
+    y0 = math.ceil(max(my - hy - 0.5, -COORD_LIMIT))
+    y1 = math.floor(min(my + hy - 0.5, COORD_LIMIT))
     return int(x0), int(x1), int(y0), int(y1)
+
+
+@shared
+def kernel_bbox(mx, my, w11, w22, cutoff):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the Gaussian truncated at cutoff:
+    where 1/2 x^T W^-1 x < cutoff, |x_i| < sqrt(2 cutoff W_ii). (The aperture's kernels:
+    ``bokeh.support_bbox``.)"""
+    return pixel_bbox(mx, my, math.sqrt(2.0 * cutoff * w11), math.sqrt(2.0 * cutoff * w22))
 
 
 @shared

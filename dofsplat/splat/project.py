@@ -7,7 +7,8 @@ CoC radius, unclipped bbox columns, the aperture's radius and reach (splat/bokeh
 unblurred footprint's conic (the splat as a pinhole sees it, for the A-buffer's front pass),
 its depth change per pixel (signed, x and y) and an LOD node's colour change per pixel
 (``ewa.color_slope``; zero for a surfel); an int32 (N, 4) pixel bounding box (x0, x1, y0, y1,
-inclusive) clipped to the image; and a visibility flag. A splat's fragment weight at pixel centre x is
+inclusive) clipped to the image, empty, (0, -1, 0, -1), for a splat within a pixel of the
+image that draws none of its pixels (its disk goes into the front map); and a visibility flag. A splat's fragment weight at pixel centre x is
 
     amp * exp(-1/2 (x - m)^T W^-1 (x - m))   where that exponent is below the cutoff c,
 
@@ -22,7 +23,7 @@ import numba
 import numpy as np
 
 from ..parallel import weyl_stride
-from .bokeh import aperture_mass, edge_mix
+from .bokeh import aperture_mass, edge_mix, support_bbox
 from .ewa import color_slope, kernel_bbox, kernel_pixel_sum, max_eigenvalue, project_surfel
 
 # the rasteriser reads the first N_RASTER_FIELDS (the CUDA backend keeps a batch of them in
@@ -108,11 +109,20 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces, disc)
     if not ok:
         return
-    x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff, abs(radius))
+    if radius != 0.0:
+        x0, x1, y0, y1 = support_bbox(mx, my, w11, w12, w22, radius, math.sqrt(2.0 * cutoff))
+    else:
+        x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
+    if x0 > width or x1 < -1 or y0 > height or y1 < -1:
+        return  # outside the view frustum, by more than a pixel
     cx0, cx1 = max(x0, 0), min(x1, width - 1)
     cy0, cy1 = max(y0, 0), min(y1, height - 1)
     if cx0 > cx1 or cy0 > cy1:
-        return  # outside the view frustum
+        # no pixel of the image, but within one: the splat draws no fragment (an empty box
+        # makes no tile pair), and its opaque disk still goes into the front map beyond the
+        # edge (abuffer.front_box), where a surface just behind it, blurred a little more,
+        # reaches in (tests/test_render.py, "beyond the frame edge")
+        cx0, cx1, cy0, cy1 = 0, -1, 0, -1
     det = w11 * w22 - w12 * w12
     c11, c12, c22 = w22 / det, -w12 / det, w11 / det
     # LOD nodes are tapered (their truncation edge would show as a disc); surfels keep the
