@@ -1,5 +1,5 @@
 """``python -m dofsplat``: the command line of :mod:`dofsplat.cli`."""
 
-from .cli import main
+from .cli import entry
 
-raise SystemExit(main())
+entry()

@@ -12,6 +12,10 @@ run of consecutive k items from all over the range, and the frame is the same bi
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
+
 import numba
 
 PHI_INVERSE = 0.6180339887498949
@@ -30,3 +34,30 @@ def weyl_stride(n):
         if a == 1:
             return s
         s += 1
+
+
+@contextlib.contextmanager
+def interrupt_after():
+    """Hold Ctrl-C until the block ends, then raise it (KeyboardInterrupt).
+
+    For calls whose worker threads write into buffers that the calling thread owns:
+    scipy's k-d tree query with ``workers`` waits for its threads in Python, so Ctrl-C
+    unwound the call and freed its buffers while they still wrote, and the process died of
+    a segmentation fault (one interrupted load in four, 2026-11-27). Outside the main
+    thread, or where SIGINT is ignored, the block simply runs.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+    previous = signal.getsignal(signal.SIGINT)
+    if previous in (signal.SIG_IGN, None):
+        yield
+        return
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held:
+        raise KeyboardInterrupt

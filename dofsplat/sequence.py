@@ -29,7 +29,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -212,7 +211,10 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
                             "frames (a name without an extension)")
     folder = output.with_name(f".{output.name}.frames") if video else output
     frame_format = "png" if video else frame_format
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise DofsplatError(f"{output}: cannot write: {e.strerror or e}") from e
     _claim(folder, specs, settings, surfels, frame_format)
     todo = [s for s in specs if not frame_path(folder, s.index, frame_format).exists()]
     _render_into(folder, todo, len(specs), surfels, settings, frame_format, client, progress)
@@ -227,20 +229,21 @@ def write_video(path: Path, frames: list[Path], fps: float) -> None:
     """Assemble PNG frames, in order, into an .mp4 (H.264, yuv420p) or a .gif, atomically."""
     from PIL import Image
 
+    from .io import atomic_write
+
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+
+    def write(tmp: str) -> None:
         if path.suffix.lower() == ".gif":
             images = [Image.open(f).convert("RGB") for f in frames]
             images[0].save(tmp, save_all=True, append_images=images[1:],
                            duration=max(1, round(1000.0 / fps)), loop=0)
         else:
             _write_mp4(tmp, frames, fps)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    # (atomic_write: a temporary file renamed, with the permissions of any new file; the
+    # video's own temporary file was private, 0600, until 2026-11-27)
+    atomic_write(path, write)
 
 
 # -- the parts ----------------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -114,6 +115,12 @@ def test_mp4_and_gif_decode_to_the_frames(tmp_path, capsys):
     assert (frames[0].width, frames[0].height) == (64, 48)  # H.264 wants even sizes
     assert Image.open(gif).n_frames == 5 and Image.open(gif).size == (63, 47)
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no leftovers
+    # readable as any new file is (the umask's), not private as a temporary file (0600,
+    # until 2026-11-27)
+    umask = os.umask(0)
+    os.umask(umask)
+    for out in (mp4, gif):
+        assert out.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
 def test_a_rerun_skips_the_frames_that_exist(tmp_path, capsys, monkeypatch):
@@ -194,6 +201,7 @@ def test_the_readme_keyframes_are_docs_moves_json():
     (["--frames", "3", "--focus-at", "5", "5", "--focus-from", "2", "--focus-to", "3"],
      "give it or --focus-from"),
     (["--frames", "3", "--depth", "d.npy"], "describe one frame"),
+    (["--frames", "3", "--scheduler", "no-port"], "cannot reach the Dask scheduler"),
 ])
 def test_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch, extra, message):
     monkeypatch.chdir(tmp_path)

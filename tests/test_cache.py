@@ -219,7 +219,10 @@ def test_a_mesh_key_follows_the_files_it_names_only(tmp_path):
     assert prepared.cache_key(tmp_path / "m.obj", loader, {}) != key
 
 
-def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir):
+@pytest.mark.parametrize("damage", ["garbage", "cut"])
+def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir, damage):
+    """A cache entry that is not a tree, or a real one cut short (a BadZipFile, which
+    every render of the model met as a traceback until 2026-11-27), is built again."""
     from dofsplat.lod.cache import cache_folder, cached_hierarchy
     from dofsplat.lod.hierarchy import fingerprint
 
@@ -228,6 +231,11 @@ def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir):
     s = grid_surfels(8)
     path = cache_folder() / f"{fingerprint(s)}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(b"not a tree")
+    if damage == "garbage":
+        path.write_bytes(b"not a tree")
+    else:
+        cached_hierarchy(s, "auto")
+        path.write_bytes(path.read_bytes()[:2000])
+    s = grid_surfels(8)  # (a fresh object: the tree is not kept on it yet)
     tree = cached_hierarchy(s, "auto")  # no error: rebuilt, and kept again
-    assert len(tree) == 2 * len(s) - 1 and path.stat().st_size > 100
+    assert len(tree) == 2 * len(s) - 1 and path.stat().st_size > 2000

@@ -276,6 +276,13 @@ BAD_RENDER = {
     "bad-depth-output": (["render", "{ply}", "-o", "out.png", "--depth", "depth.txt"], None),
     "same-output-twice": (["render", "{ply}", "-o", "out.npy", "--depth", "out.npy"], None),
     "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None),
+    # a folder no one may write in, root included (os.access said yes to root, and the
+    # error came after the render as a traceback, until 2026-11-27)
+    "unwritable-output-dir": (["render", "{ply}", "-o", "/proc/out.png"], None),
+    "unwritable-depth-dir": (["render", "{ply}", "-o", "out.png", "--depth", "/proc/d.npy"],
+                             None),
+    "unwritable-stats-dir": (["render", "{ply}", "-o", "out.png", "--stats", "/proc/s.json"],
+                             None),
     "focus-at-outside": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
                           "--focus-at", "96", "10"], None),
     "focus-at-background": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
@@ -326,6 +333,44 @@ def test_interrupt_exits_quietly(workdir, capsys, monkeypatch):
     status, out, err = run_main(["demo"], capsys)
     assert status == 130 and out == "" and err == ""
     assert os.listdir(workdir) == []
+
+
+def test_an_interrupt_inside_a_kernel_exits_quietly(workdir, capsys, monkeypatch):
+    """Ctrl-C during a numba kernel reaches Python as a SystemError ("returned a result
+    with an exception set") over the KeyboardInterrupt; until 2026-11-27 it printed that
+    traceback and exited 1."""
+    import dofsplat.demo
+
+    def interrupted_in_a_kernel(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher(<function bin_splats>) returned a result with "
+                              "an exception set")
+
+    monkeypatch.setattr(dofsplat.demo, "demo_scene", interrupted_in_a_kernel)
+    status, out, err = run_main(["demo"], capsys)
+    assert status == 130 and out == "" and err == ""
+    assert os.listdir(workdir) == []
+
+
+def test_ctrl_c_waits_for_the_k_d_tree_threads():
+    """``parallel.interrupt_after`` holds Ctrl-C to the end of its block, then raises it:
+    scipy's threaded k-d tree query, interrupted, freed the buffers its threads wrote
+    into (a segmentation fault in one interrupted load of the lion in four)."""
+    import signal
+    import time
+
+    from dofsplat.parallel import interrupt_after
+
+    finished = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupt_after():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # Python runs the handler here: held, not raised
+            finished.append(True)
+    assert finished == [True]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_bugs_keep_their_traceback(workdir, monkeypatch):

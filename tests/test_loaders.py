@@ -730,6 +730,35 @@ def test_pcd_capture_is_seen_from_its_sensor(tmp_path, capsys):
     np.testing.assert_allclose(depth[interior & valid], z[interior & valid], rtol=5e-3)
 
 
+def test_a_converted_capture_keeps_its_view(tmp_path, capsys):
+    """``dofsplat convert`` keeps a depth capture's sensor view and its unlit default in
+    the surfel PLY's header (``comment dofsplat view ...``): rendering the PLY is rendering
+    the capture, to the bit. Until 2026-11-27 both were lost, and the converted model of
+    the shared data's five_people.pcd rendered lit, from a framing camera, 8 dB from the
+    capture's own frame."""
+    from dofsplat import cli
+
+    w, h, fx, cx, cy = 32, 24, 30.0, 15.0, 11.0
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = np.full((h, w), 2.0)
+    z[8:16, 10:20] = 1.5
+    x, y = (u - cx) / fx * z, (v - cy) / fx * z
+    path = tmp_path / "capture.pcd"
+    rgb = np.full(w * h, float(np.frombuffer(np.array([0x00C08040], "<u4").tobytes(), "<f4")[0]))
+    path.write_bytes(pcd_bytes(["x", "y", "z", "rgb"], ["F"] * 4, [4] * 4,
+                               [x.ravel(), y.ravel(), z.ravel(), rgb], width=w, height=h))
+    ply = tmp_path / "capture.ply"
+    assert cli.main(["convert", str(path), "-o", str(ply), "-q"]) == 0
+    kept = load(ply)
+    original = load(path)
+    assert kept.shading_hint == "none"
+    for key in ("eye", "target", "up", "size", "frustum"):
+        np.testing.assert_allclose(kept.capture[key], original.capture[key], rtol=1e-15)
+    for name, src in (("a.npy", path), ("b.npy", ply)):
+        assert cli.main(["render", str(src), "-o", str(tmp_path / name), "-q"]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "a.npy"), np.load(tmp_path / "b.npy"))
+
+
 def test_pcd_header_errors():
     ok = b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\n"
     assert parse_pcd_header(ok + b"DATA ascii\n").points == 2

@@ -40,7 +40,7 @@ from .framing import format_count
 from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatter, Parser,
                       default_output)
 
-__all__ = ["main", "build_parser", "default_output", "format_count", "EXIT_OK", "EXIT_USAGE",
+__all__ = ["main", "entry", "build_parser", "default_output", "format_count", "EXIT_OK", "EXIT_USAGE",
            "EXIT_INTERRUPTED"]
 
 COMMANDS = (render, demo, view, reference, animate, compare, convert, cache)  # in the order --help lists them
@@ -64,7 +64,41 @@ def main(argv: list[str] | None = None) -> int:
         print_error(str(e))
         return EXIT_USAGE
     except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+        return interrupted()
+    except SystemError as e:
+        # Ctrl-C inside a numba kernel: the KeyboardInterrupt is pending when the kernel
+        # returns, and CPython reports "returned a result with an exception set" over it
+        if caused_by_interrupt(e):
+            return interrupted()
+        raise
+
+
+def entry() -> None:
+    """The ``dofsplat`` console script: :func:`main`, then exit with its status. After Ctrl-C
+    the process ends at once (``os._exit``, the outputs' temporary files already removed):
+    tearing the interpreter down while numba's threads or its compiler were mid-call could
+    crash it (a segmentation fault, status -11, in one of four interrupted renders)."""
+    status = main()
+    if status == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    sys.exit(status)
+
+
+def interrupted() -> int:
+    return EXIT_INTERRUPTED  # quietly, as a shell's own commands end on Ctrl-C
+
+
+def caused_by_interrupt(e: BaseException) -> bool:
+    """Whether a KeyboardInterrupt lies in e's chain of causes and contexts."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def build_parser() -> argparse.ArgumentParser:

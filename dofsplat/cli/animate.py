@@ -140,6 +140,11 @@ def _check(args) -> None:
         raise DofsplatError(f"{out} exists and is not a folder")
     if not out.resolve().parent.is_dir():
         raise DofsplatError(f"the folder of {out} does not exist")
+    from ..io import check_writable_path
+
+    # a file made and removed where the video, or the folder's frames, will be
+    check_writable_path(out / "frame.png" if out.is_dir() else out,
+                        "a video file name or a folder")
     for a, b in (("focus_from", "focus_to"), ("aperture_from", "aperture_to")):
         if (getattr(args, a) is None) != (getattr(args, b) is None):
             raise DofsplatError(f"--{a.replace('_', '-')} and --{b.replace('_', '-')} go "
@@ -181,7 +186,7 @@ def _client(args):
     if args.scheduler:
         try:
             return Client(args.scheduler, timeout="10s"), None
-        except (OSError, TimeoutError) as e:
+        except (OSError, TimeoutError, ValueError, TypeError) as e:  # unreachable, malformed
             raise DofsplatError(f"cannot reach the Dask scheduler at {args.scheduler}: "
                                 f"{e}") from None
     threads = max(1, (os.cpu_count() or 1) // args.workers)

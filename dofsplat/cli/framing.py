@@ -49,12 +49,21 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
         result.stats["load_ms"] = info["seconds"] * 1000.0
         result.stats["load_from_cache"] = bool(info["from_cache"])
 
-    write_image(outputs["image"], result.image, depth=result.depth)
-    if "depth" in outputs:
-        write_depth(outputs["depth"], result.depth)
-    if "stats" in outputs:
-        write_stats(outputs["stats"], args, outputs, result, camera, lens, focus_source,
-                     settings)
+    written = []
+    try:
+        write_image(outputs["image"], result.image, depth=result.depth)
+        written.append(outputs["image"])
+        if "depth" in outputs:
+            write_depth(outputs["depth"], result.depth)
+            written.append(outputs["depth"])
+        if "stats" in outputs:
+            write_stats(outputs["stats"], args, outputs, result, camera, lens, focus_source,
+                         settings)
+    except BaseException:
+        # one output failed (a disk filled up since check_outputs): none is left behind
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     if not args.quiet:
         print(summary(list(outputs.values()), result.stats), file=sys.stderr)
     return EXIT_OK

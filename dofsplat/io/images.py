@@ -47,7 +47,10 @@ def atomic_write(path, write_fn: Callable[[str], None]) -> Path:
     """
     path = Path(path)
     _check_parent_dir(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    except OSError as e:
+        raise DofsplatError(f"{path}: cannot write: {e.strerror or e}") from e
     os.close(fd)
     try:
         # mkstemp makes the file private (0600); a rendered image should get the
@@ -97,8 +100,14 @@ def check_writable_path(path, what: str = "a file name") -> Path:
     if path.is_dir():
         raise DofsplatError(f"{path}: is a directory, expected {what}")
     _check_parent_dir(path)
-    if not os.access(path.parent, os.W_OK):
-        raise DofsplatError(f"{path}: directory {str(path.parent)!r} is not writable")
+    # a file made and removed there: os.access says yes to root everywhere, /proc included
+    try:
+        fd, probe = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".probe")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise DofsplatError(f"{path}: directory {str(path.parent)!r} is not writable "
+                            f"({e.strerror or e})") from e
     return path
 
 

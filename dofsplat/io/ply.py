@@ -404,7 +404,8 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
         raise DofsplatError(f"{path} is {_KIND_WORDS[kind]}: option(s) {', '.join(wrong)} do "
                             "not apply to it")
     if kind == "surfels":
-        return normalise_surfels(read_surfel_ply(path, material=material), normalise or "none")
+        surfels = normalise_surfels(read_surfel_ply(path, material=material), normalise or "none")
+        return _apply_view_comments(surfels, header.comments)
     missing = [n for n in ("x", "y", "z") if n not in vertex.names]
     if missing:
         raise DofsplatError(f"{path}: vertex element lacks {' '.join(missing)}")
@@ -639,7 +640,8 @@ def write_surfel_ply(path, surfels: Surfels, binary: bool = True) -> Path:
     path = Path(path)
     vertex = PlyElement.describe(_vertex_records(surfels), "vertex")
     ply = PlyData([vertex], text=not binary, byte_order="<",
-                  comments=["dofsplat surfels: float32, linear RGB colour"])
+                  comments=["dofsplat surfels: float32, linear RGB colour"]
+                  + _view_comments(surfels))
 
     def write(tmp):
         if path.name.lower().endswith(".gz"):
@@ -650,6 +652,48 @@ def write_surfel_ply(path, surfels: Surfels, binary: bool = True) -> Path:
             ply.write(tmp)
 
     return atomic_write(path, write)
+
+
+# How the model wants to be seen, kept in a surfel PLY's header (``dofsplat convert``): a
+# depth capture's sensor view and its unlit colours (io.pcd), the scan's up direction
+VIEW_COMMENT = "dofsplat view"
+
+
+def _view_comments(s: Surfels) -> list[str]:
+    """``comment dofsplat view <name> <numbers or word>`` lines for the surfels' view hints:
+    capture.<key> (``Surfels.capture``), up_hint, shading_hint."""
+    lines = []
+    for key, value in (getattr(s, "capture", None) or {}).items():
+        numbers = np.asarray(value, np.float64).reshape(-1)
+        lines.append(f"{VIEW_COMMENT} capture.{key} " + " ".join(repr(float(v)) for v in numbers))
+    if getattr(s, "up_hint", None) is not None:
+        lines.append(f"{VIEW_COMMENT} up_hint " + " ".join(repr(float(v)) for v in s.up_hint))
+    if getattr(s, "shading_hint", None) is not None:
+        lines.append(f"{VIEW_COMMENT} shading_hint {s.shading_hint}")
+    return lines
+
+
+def _apply_view_comments(s: Surfels, comments) -> Surfels:
+    """The view hints of ``_view_comments`` back onto the surfels (lines it cannot read are
+    left alone: a comment is no reason to refuse a model)."""
+    capture = {}
+    for line in comments:
+        words = line.split()
+        if len(words) < 4 or " ".join(words[:2]) != VIEW_COMMENT:
+            continue
+        name, values = words[2], words[3:]
+        try:
+            if name.startswith("capture."):
+                capture[name.split(".", 1)[1]] = np.array([float(v) for v in values])
+            elif name == "up_hint" and len(values) == 3:
+                s.up_hint = tuple(float(v) for v in values)
+            elif name == "shading_hint" and len(values) == 1:
+                s.shading_hint = values[0]
+        except ValueError:
+            continue
+    if {"eye", "target", "up", "size", "frustum"} <= capture.keys():
+        s.capture = capture
+    return s
 
 
 def _vertex_records(s: Surfels) -> np.ndarray:

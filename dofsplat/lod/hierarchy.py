@@ -61,6 +61,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -235,7 +236,8 @@ class Hierarchy:
                 small = int(z["small"])
         except FileNotFoundError:
             return None
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            # (a cut or damaged .npz is a BadZipFile, which is none of the others)
             raise DofsplatError(f"{path}: not a dofsplat LOD file ({exc})") from None
         if surfels is not None and fp != fingerprint(surfels):
             return None

@@ -52,6 +52,7 @@ import numba
 import numpy as np
 
 from ..errors import DofsplatError
+from ..parallel import interrupt_after
 from ..colors import srgb_to_linear
 from ..surfels import Material, Surfels
 
@@ -338,7 +339,8 @@ def density_radius(positions: np.ndarray, spacing: float, k: int = RADIUS_NEIGHB
     n = len(positions)
     if n <= k:
         return np.full(n, spacing)
-    dist, _ = cKDTree(positions).query(positions, k=k + 1, workers=_WORKERS)
+    with interrupt_after():  # (its threads write into dist: parallel.interrupt_after)
+        dist, _ = cKDTree(positions).query(positions, k=k + 1, workers=_WORKERS)
     mean = dist[:, 1:].mean(axis=1)
     rms = math.sqrt(float(np.mean(mean**2)))
     if not rms > 0:

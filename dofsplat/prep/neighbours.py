@@ -12,6 +12,8 @@ import sys
 
 import numpy as np
 
+from ..parallel import interrupt_after
+
 QUERY_CHUNK = 1 << 16  # points per k-d tree query, the unit of the progress bar
 
 
@@ -31,7 +33,8 @@ def nearest_neighbours(positions: np.ndarray, k: int, *, progress: bool = False,
     with _progress_bar(n, desc, progress) as bar:
         for start in range(0, n, QUERY_CHUNK):
             stop = min(n, start + QUERY_CHUNK)
-            d, i = tree.query(positions[start:stop], k + 1, workers=-1)
+            with interrupt_after():  # (its threads write into d and i: parallel.py)
+                d, i = tree.query(positions[start:stop], k + 1, workers=-1)
             dist[start:stop], idx[start:stop] = d, i
             bar.update(stop - start)
     return dist, idx
