@@ -202,6 +202,7 @@ def test_the_readme_keyframes_are_docs_moves_json():
      "give it or --focus-from"),
     (["--frames", "3", "--depth", "d.npy"], "describe one frame"),
     (["--frames", "3", "--scheduler", "no-port"], "cannot reach the Dask scheduler"),
+    (["--frames", "3", "--frame-format", "exr"], "is for a folder of frames"),
 ])
 def test_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch, extra, message):
     monkeypatch.chdir(tmp_path)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..errors import DofsplatError
 from .framing import check_arguments, lens_from_args, settings_from_args
-from .options import (EPILOG, EXIT_OK, HelpFormatter, add_input_options, add_view_options,
+from .options import (EXIT_OK, UNITS, HelpFormatter, add_input_options, add_view_options,
                       finite_number, non_negative, positive_int, positive_number)
 
 _EXAMPLES = """\
@@ -26,7 +26,7 @@ examples:
 def add_parser(commands) -> None:
     """The ``animate`` subcommand's options."""
     p = commands.add_parser(
-        "animate", allow_abbrev=False, epilog=_EXAMPLES + "\n" + EPILOG,
+        "animate", allow_abbrev=False, epilog=_EXAMPLES + "\n" + UNITS,
         formatter_class=HelpFormatter,
         help="a focus pull, aperture change or orbit as a video or frames",
         description="Render a sequence: the camera and lens change over N frames, by the "
@@ -116,7 +116,11 @@ def run(args) -> int:
         if cluster is not None:
             cluster.close()
     if not args.quiet:
-        print(f"wrote {out} ({args.frames} frames, {camera.width}x{camera.height}"
+        # (H.264 wants even sizes: an .mp4 is a pixel larger where the frame size is odd)
+        w, h = camera.width, camera.height
+        if out.suffix.lower() == ".mp4":
+            w, h = w + w % 2, h + h % 2
+        print(f"wrote {out} ({args.frames} frame{'s' if args.frames != 1 else ''}, {w}x{h}"
               + (f", {args.fps:g} fps" if out.suffix else "") + ")", file=sys.stderr)
     return EXIT_OK
 
@@ -164,6 +168,9 @@ def _check(args) -> None:
                             "for them")
     if args.method != "ours":
         raise DofsplatError("animate renders with --method ours")
+    if out.suffix and args.frame_format != "png":
+        raise DofsplatError(f"--frame-format {args.frame_format} is for a folder of frames (a "
+                            "name without an extension); a video is made from PNG frames")
 
 
 def _shortcut_keyframes(args, Keyframe) -> list:

@@ -24,13 +24,15 @@ DEFAULT_FOV_DEG = 40.0  # vertical field of view for ``render``
 DEFAULT_CUTOFF = 2.5  # the paper's c
 APERTURE_PER_HALF_DIAGONAL = 0.1  # ``render``'s default lens diameter, x bbox half diagonal
 
-EPILOG = """\
+UNITS = """\
 units:
   Lengths (--eye, --target, --focus, --aperture, --focal-length, --frustum) are in world
   units, the units of the model's coordinates. Image sizes and positions (--size,
   --focus-at) are in pixels, (0, 0) being the top-left corner of the image. Angles are in
   degrees. Colours are display (sRGB) values in 0..1.
+"""
 
+EPILOG = UNITS + """
 examples:
   dofsplat demo
   dofsplat demo --size 1280x720 --aperture 0.3 -o wide.png

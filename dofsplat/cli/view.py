@@ -7,14 +7,14 @@ import sys
 
 from ..errors import DofsplatError
 from .framing import check_arguments, lens_from_args, settings_from_args
-from .options import EPILOG, EXIT_OK, HelpFormatter, add_input_options, add_view_options
+from .options import EXIT_OK, UNITS, HelpFormatter, add_input_options, add_view_options
 
 
 def add_parser(commands) -> None:
     """The ``view`` subcommand's options."""
     p = commands.add_parser(
         "view", allow_abbrev=False, epilog="examples:\n  dofsplat view --demo\n"
-        "  dofsplat view scan.laz --port 8081 --no-browser\n\n" + EPILOG,
+        "  dofsplat view scan.laz --port 8081 --no-browser\n\n" + UNITS,
         formatter_class=HelpFormatter,
         help="the model in a browser viewer: orbit, click to focus",
         description="Serve the model in a web viewer (viser): orbit, pan and zoom with the "

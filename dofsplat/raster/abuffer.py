@@ -332,8 +332,10 @@ def front_disk_box(splats, k, margin):
     det = f11 * f22 - f12 * f12
     hx = math.sqrt(2.0 * FRONT_CUTOFF * f22 / det)  # F = inverse of the conic
     hy = math.sqrt(2.0 * FRONT_CUTOFF * f11 / det)
-    return (int(math.floor(mx - hx - 0.5)), int(math.ceil(mx + hx - 0.5)),
-            int(math.floor(my - hy - 0.5)), int(math.ceil(my + hy - 0.5)))
+    # the pixel centres within hx, hy of the centre (ewa.pixel_bbox: a box rounded
+    # outwards held a row and a column on each side where no centre is inside)
+    return (int(math.ceil(mx - hx - 0.5)), int(math.floor(mx + hx - 0.5)),
+            int(math.ceil(my - hy - 0.5)), int(math.floor(my + hy - 0.5)))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
