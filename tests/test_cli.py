@@ -276,6 +276,8 @@ BAD_RENDER = {
     "bad-depth-output": (["render", "{ply}", "-o", "out.png", "--depth", "depth.txt"], None),
     "same-output-twice": (["render", "{ply}", "-o", "out.npy", "--depth", "out.npy"], None),
     "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None),
+    "output-in-a-file": (["render", "{ply}", "-o", "f.ply/out.png"], ("f.ply", _garbage_ply)),
+    "k-too-small": (["render", "{ply}", "-o", "out.png", "--k", "1"], None),
     # a folder no one may write in, root included (os.access said yes to root, and the
     # error came after the render as a traceback, until 2026-11-27)
     "unwritable-output-dir": (["render", "{ply}", "-o", "/proc/out.png"], None),
@@ -398,6 +400,16 @@ def test_warnings_are_one_line(workdir, capsys):
                                "-q"], capsys)
     assert status == 0
     assert re.fullmatch(r"dofsplat: warning: .*dropped 1 of 2 surfels.*\n", err)
+
+
+def test_a_frame_with_nothing_in_view_says_so(plane_ply, workdir, capsys):
+    """A camera that looks away from the model writes the background, and says why (it
+    passed in silence until 2026-11-27)."""
+    status, _, err = run_main(["render", plane_ply, "-o", "away.png", "--size", "16x16",
+                               "--eye", "0", "0", "10", "--target", "0", "0", "20", "-q"],
+                              capsys)
+    assert status == 0 and (workdir / "away.png").exists()
+    assert re.fullmatch(r"dofsplat: warning: no surfel of the model reaches the image.*\n", err)
 
 
 # ---------------------------------------------------------------------------------------

@@ -44,6 +44,11 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
         lens = lens_from_args(args, focus, default_aperture)
 
     result = render_by_method(args, surfels, camera, lens, settings)
+    if result.stats.get("fragments", 1) == 0:
+        import warnings
+
+        warnings.warn("no surfel of the model reaches the image: it is the background alone "
+                      "(the camera looks past the model? see --eye, --target, --fov)")
     info = getattr(args, "load_info", None)
     if info is not None:  # the model's loading and preparation, before the frame
         result.stats["load_ms"] = info["seconds"] * 1000.0

@@ -83,7 +83,7 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--texture", metavar="FILE",
                        help="meshes: an image applied through the texture coordinates "
                             "(for an OBJ that names no material file)")
-    group.add_argument("--k", metavar="K", type=positive_int,
+    group.add_argument("--k", metavar="K", type=neighbour_count,
                        help="point clouds (PLY without faces, LAS/LAZ, E57, PCD): neighbours for "
                             "the normals, smoothing and radii (default: 24)")
     group.add_argument("--no-smooth", dest="smooth", action="store_false", default=None,
@@ -406,6 +406,13 @@ def min_node_count(text: str) -> int:
         raise argparse.ArgumentTypeError(f"the smallest node must be 2..{MAX_LOD_MIN_NODE} "
                                          f"surfels, got {m}")
     return m
+
+
+def neighbour_count(text: str) -> int:
+    value = whole_number(text)
+    if value < 4:  # prep.pointcloud.MIN_K: fewer cannot fit a plane (imported lazily there)
+        raise argparse.ArgumentTypeError(f"must be at least 4 neighbours, got {text!r}")
+    return value
 
 
 def positive_int(text: str) -> int:

@@ -84,6 +84,8 @@ def _umask() -> int:
 def _check_parent_dir(path: Path) -> None:
     parent = path.parent
     if not parent.is_dir():
+        if parent.exists():
+            raise DofsplatError(f"{path}: {str(parent)!r} is a file, not a directory")
         raise DofsplatError(f"{path}: directory {str(parent)!r} does not exist")
 
 
