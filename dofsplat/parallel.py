@@ -38,7 +38,8 @@ def weyl_stride(n):
 
 @contextlib.contextmanager
 def interrupt_after():
-    """Hold Ctrl-C until the block ends, then raise it (KeyboardInterrupt).
+    """Hold Ctrl-C until the block ends, then deliver it (Python's handler raises
+    KeyboardInterrupt).
 
     For calls whose worker threads write into buffers that the calling thread owns:
     scipy's k-d tree query with ``workers`` waits for its threads in Python, so Ctrl-C
@@ -60,4 +61,6 @@ def interrupt_after():
     finally:
         signal.signal(signal.SIGINT, previous)
     if held:
-        raise KeyboardInterrupt
+        # the held Ctrl-C to whoever had it: Python's own handler raises KeyboardInterrupt,
+        # an application's runs as it would have
+        signal.raise_signal(signal.SIGINT)

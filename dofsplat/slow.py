@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from .camera import Camera
-from .splat.ewa import SMALL_APERTURE
+from .splat.ewa import BOX_SLACK, BOX_SLACK_REL, SMALL_APERTURE
 from .frame import RenderSettings, coc_coefficients
 from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
@@ -144,8 +144,11 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
             radius = 0.0
         hx, hy = math.sqrt(2 * c * W[0, 0]), math.sqrt(2 * c * W[1, 1])
         if radius != 0:
-            hx, hy = support_extent(W, radius, math.sqrt(2 * c))
-        # the pixel centres within hx, hy of the mean
+            mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
+            hx, hy = support_extent(W, radius, mix, math.sqrt(2 * c))
+        # the pixel centres within hx, hy of the mean, and the slack for float32 rows
+        hx += BOX_SLACK + BOX_SLACK_REL * (hx + abs(m[0]))
+        hy += BOX_SLACK + BOX_SLACK_REL * (hy + abs(m[1]))
         x0, x1 = math.ceil(m[0] - hx - 0.5), math.floor(m[0] + hx - 0.5)
         y0, y1 = math.ceil(m[1] - hy - 0.5), math.floor(m[1] + hy - 0.5)
         if x0 > camera.width or x1 < -1 or y0 > camera.height or y1 < -1:
@@ -218,20 +221,25 @@ def _sym3(c):
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
 
 
-def support_extent(W, radius, u_c):
+def support_extent(W, radius, mix, u_c):
     """Half-widths (x, y) of a box round an aperture kernel's support (bokeh.support_bbox):
     along a direction n the support ends within |R| + u_c sqrt(n^T W n) of its centre, a
     curve inside the ellipse of semi-axes g1 = |R| + u_c sqrt(l1) and g1^2 / sqrt(2 g1^2 -
     g2^2) along W's eigenvectors (g2^2 = R^2 + |R| u_c sqrt(l1) + u_c^2 l2 + |R| u_c l2 /
-    sqrt(l1); docs/maths.md, "The support"), and inside the circle of |R| + u_c sqrt(l1)."""
+    sqrt(l1); docs/maths.md, "The support"), and inside the circle of |R| + u_c sqrt(l1);
+    and within |R| + u_c sqrt(W_ii) / (1 - mix) along each axis (the scale s is at least
+    (1 - mix) sqrt(n^T W^-1 n)). ``test_support_bbox_*`` checks the box against the kernel
+    itself, pixel by pixel."""
     lam, vec = np.linalg.eigh(W)  # ascending: l2, l1
     l2, l1 = max(lam[0], 0.0), lam[1]
     r = abs(radius)
     g1 = r + u_c * math.sqrt(l1)
     g2sq = r * r + r * u_c * math.sqrt(l1) + u_c * u_c * l2 + r * u_c * l2 / math.sqrt(l1)
     axes = np.array([g1, g1 * g1 / math.sqrt(2 * g1 * g1 - g2sq)])  # along vec[:, 1], vec[:, 0]
-    ext = np.sqrt((axes[0] * vec[:, 1]) ** 2 + (axes[1] * vec[:, 0]) ** 2)
-    return min(ext[0], g1), min(ext[1], g1)
+    ext = np.minimum(np.sqrt((axes[0] * vec[:, 1]) ** 2 + (axes[1] * vec[:, 0]) ** 2), g1)
+    if mix < 1:
+        ext = np.minimum(ext, r + u_c * np.sqrt(np.diag(W)) / (1 - mix))
+    return float(ext[0]), float(ext[1])
 
 
 def _exponents(m, Wi, x0, x1, y0, y1):

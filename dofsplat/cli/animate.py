@@ -193,7 +193,7 @@ def _client(args):
     if args.scheduler:
         try:
             return Client(args.scheduler, timeout="10s"), None
-        except (OSError, TimeoutError, ValueError, TypeError) as e:  # unreachable, malformed
+        except (OSError, TimeoutError, ValueError) as e:  # unreachable, or malformed
             raise DofsplatError(f"cannot reach the Dask scheduler at {args.scheduler}: "
                                 f"{e}") from None
     threads = max(1, (os.cpu_count() or 1) // args.workers)

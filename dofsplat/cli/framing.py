@@ -54,6 +54,8 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
         result.stats["load_ms"] = info["seconds"] * 1000.0
         result.stats["load_from_cache"] = bool(info["from_cache"])
 
+    # what this run creates (a file that was there before is replaced: it cannot come back)
+    created = [path for path in outputs.values() if not path.exists()]
     written = []
     try:
         write_image(outputs["image"], result.image, depth=result.depth)
@@ -65,9 +67,11 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
             write_stats(outputs["stats"], args, outputs, result, camera, lens, focus_source,
                          settings)
     except BaseException:
-        # one output failed (a disk filled up since check_outputs): none is left behind
+        # one output failed (a disk filled up since check_outputs): none that this run
+        # created is left behind
         for path in written:
-            path.unlink(missing_ok=True)
+            if path in created:
+                path.unlink(missing_ok=True)
         raise
     if not args.quiet:
         print(summary(list(outputs.values()), result.stats), file=sys.stderr)

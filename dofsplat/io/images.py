@@ -51,8 +51,8 @@ def atomic_write(path, write_fn: Callable[[str], None]) -> Path:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
     except OSError as e:
         raise DofsplatError(f"{path}: cannot write: {e.strerror or e}") from e
-    os.close(fd)
     try:
+        os.close(fd)
         # mkstemp makes the file private (0600); a rendered image should get the
         # permissions any newly created file would.
         os.chmod(tmp, 0o666 & ~_umask())
@@ -105,8 +105,10 @@ def check_writable_path(path, what: str = "a file name") -> Path:
     # a file made and removed there: os.access says yes to root everywhere, /proc included
     try:
         fd, probe = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".probe")
-        os.close(fd)
-        os.unlink(probe)
+        try:
+            os.close(fd)
+        finally:
+            os.unlink(probe)
     except OSError as e:
         raise DofsplatError(f"{path}: directory {str(path.parent)!r} is not writable "
                             f"({e.strerror or e})") from e

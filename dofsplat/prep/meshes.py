@@ -55,6 +55,7 @@ from ..errors import DofsplatError
 from ..parallel import interrupt_after
 from ..colors import srgb_to_linear
 from ..surfels import Material, Surfels
+from .neighbours import QUERY_CHUNK
 
 DEFAULT_MIN_SAMPLES = 200_000  # default count: the vertex count, but at least this many
 DEFAULT_COLOR = (0.8, 0.8, 0.8, 1.0)  # linear RGBA of a mesh without colour or texture
@@ -339,8 +340,12 @@ def density_radius(positions: np.ndarray, spacing: float, k: int = RADIUS_NEIGHB
     n = len(positions)
     if n <= k:
         return np.full(n, spacing)
-    with interrupt_after():  # (its threads write into dist: parallel.interrupt_after)
-        dist, _ = cKDTree(positions).query(positions, k=k + 1, workers=_WORKERS)
+    tree = cKDTree(positions)
+    dist = np.empty((n, k + 1))
+    for start in range(0, n, QUERY_CHUNK):  # Ctrl-C is held a chunk at a time, no longer
+        stop = min(n, start + QUERY_CHUNK)
+        with interrupt_after():  # (its threads write into the result: parallel.py)
+            dist[start:stop] = tree.query(positions[start:stop], k=k + 1, workers=_WORKERS)[0]
     mean = dist[:, 1:].mean(axis=1)
     rms = math.sqrt(float(np.mean(mean**2)))
     if not rms > 0:

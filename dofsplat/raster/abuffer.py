@@ -28,7 +28,7 @@ import numpy as np
 from ..parallel import weyl_stride
 from ..splat.bokeh import ROW, aperture_rows, aperture_value, support_conic, table_lerp
 from ..splat.ewa import (NARROW_BBOX, NARROW_ROWS, coc_radius_px, column_start, column_step,
-                         exponent, row_pixel_range, row_span, row_start)
+                         exponent, pixel_bbox, row_pixel_range, row_span, row_start)
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH, F11, F12, F22,
                              FLOOR, GREEN, GX, GY, GZX, GZY, MIX, MX, MY, RAD, RED, RX, RY, X0,
                              X1, ZHI, ZLO)
@@ -328,14 +328,15 @@ def front_disk_box(splats, k, margin):
     """The pixel box (x0, x1, y0, y1) of splat k's unblurred disk in the front map, whose
     pixel (i, j) is the image's (i - margin, j - margin); not clipped."""
     mx, my = splats[k, MX] + margin, splats[k, MY] + margin
-    f11, f12, f22 = splats[k, F11], splats[k, F12], splats[k, F22]
+    # in float64: a thin disk's determinant in float32 lost its digits (or all of them)
+    f11, f12, f22 = (np.float64(splats[k, F11]), np.float64(splats[k, F12]),
+                     np.float64(splats[k, F22]))
     det = f11 * f22 - f12 * f12
     hx = math.sqrt(2.0 * FRONT_CUTOFF * f22 / det)  # F = inverse of the conic
     hy = math.sqrt(2.0 * FRONT_CUTOFF * f11 / det)
-    # the pixel centres within hx, hy of the centre (ewa.pixel_bbox: a box rounded
-    # outwards held a row and a column on each side where no centre is inside)
-    return (int(math.ceil(mx - hx - 0.5)), int(math.floor(mx + hx - 0.5)),
-            int(math.ceil(my - hy - 0.5)), int(math.floor(my + hy - 0.5)))
+    # the pixel centres within hx, hy of the centre (a box rounded outwards held a row and
+    # a column on each side where no centre is inside)
+    return pixel_bbox(mx, my, hx, hy)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

@@ -321,18 +321,28 @@ def support_conic(w11, w12, w22, radius, u_c):
 
 
 @shared
-def support_bbox(mx, my, w11, w12, w22, radius, u_c):
-    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of an aperture kernel's support: the
-    box of ``support_conic``'s ellipse, cut to the circle of its reach |R| + u_c sqrt(l1)
-    (l1: W's larger eigenvalue). Both contain the support. (The Gaussian's box,
-    sqrt(2 c W_11) + |R| wide, does not: where the kernel's edge follows the aperture,
-    its support reaches past it, by up to 4 px in the suite's blurred frames.)"""
+def support_bbox(mx, my, w11, w12, w22, radius, mix, u_c):
+    """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of an aperture kernel's support. Along
+    a direction n the support ends at |R(n)| + u_c / s(n) <= |R| + u_c h(n) (``aperture_value``,
+    ``support_conic``), so it lies inside three shapes, and the box is the smallest of
+    theirs along each axis: ``support_conic``'s ellipse; the circle of its reach
+    |R| + u_c sqrt(l1) (l1: W's larger eigenvalue); and, as s >= (1 - mix) s_G with 1 / s_G
+    the radial function of W's ellipse, the box |R| + u_c sqrt(W_ii) / (1 - mix), which
+    is the tightest across an elongated kernel with an aperture not much wider (mix is
+    ``edge_mix``). (The Gaussian's box widened by |R|, the box until 2026-11-27, does not
+    hold the support: where the kernel's edge follows the aperture, the support reaches past
+    it, by up to a pixel in the suite's frames and 4 px in a scan of random kernels.)"""
     b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
     det = b11 * b22 - b12 * b12
     half_tr = 0.5 * (w11 + w22)
     diff = 0.5 * (w11 - w22)
     reach = abs(radius) + u_c * math.sqrt(half_tr + math.sqrt(diff * diff + w12 * w12))
-    return pixel_bbox(mx, my, min(math.sqrt(b22 / det), reach), min(math.sqrt(b11 / det), reach))
+    hx = min(math.sqrt(b22 / det), reach)
+    hy = min(math.sqrt(b11 / det), reach)
+    if mix < 1.0:
+        hx = min(hx, abs(radius) + u_c * math.sqrt(w11) / (1.0 - mix))
+        hy = min(hy, abs(radius) + u_c * math.sqrt(w22) / (1.0 - mix))
+    return pixel_bbox(mx, my, hx, hy)
 
 
 MASS_ANGLES = 16  # directions of each of the two families of aperture_mass (x 2: polygons)

@@ -416,12 +416,22 @@ def row_pixel_range(i, mx, my, c11, c12, c22, cutoff, x0, x1):
     return int(j0), int(j1)
 
 
+# The rasteriser reads a splat's mean and conic from its row, float32 on the CPU: a pixel
+# centre that the float64 projection puts a hair outside the cutoff may lie inside it
+# there (1 of 200,000 random splats drew such a pixel, a review's scan). Boxes are wider by
+# this many pixels, and by BOX_SLACK_REL of the reach and of the coordinate (float32's
+# 6e-8, with room): no centre farther than that from the cutoff is ever inside
+BOX_SLACK = 1e-3
+BOX_SLACK_REL = 1e-6
+
+
 @shared
 def pixel_bbox(mx, my, hx, hy):
     """Unclipped inclusive pixel bbox (x0, x1, y0, y1) of the pixel centres (j + 1/2,
-    i + 1/2) that lie within hx, hy of (mx, my) along each axis: the pixels that a kernel
-    reaching that far may draw, and no others (a centre exactly hx away is on the kernel's
-    cutoff, where it draws nothing)."""
+    i + 1/2) that lie within hx, hy of (mx, my) along each axis (and BOX_SLACK): the pixels
+    that a kernel reaching that far may draw, and no others but those within the slack."""
+    hx += BOX_SLACK + BOX_SLACK_REL * (hx + abs(mx))
+    hy += BOX_SLACK + BOX_SLACK_REL * (hy + abs(my))
     x0 = math.ceil(max(mx - hx - 0.5, -COORD_LIMIT))
     x1 = math.floor(min(mx + hx - 0.5, COORD_LIMIT))
     y0 = math.ceil(max(my - hy - 0.5, -COORD_LIMIT))

@@ -109,8 +109,10 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
         ax, bx, ay, by, near, coc_k, inv_focus, cov, cutoff, z_margin, cull_backfaces, disc)
     if not ok:
         return
+    mix = edge_mix(radius, w11, w22)
     if radius != 0.0:
-        x0, x1, y0, y1 = support_bbox(mx, my, w11, w12, w22, radius, math.sqrt(2.0 * cutoff))
+        x0, x1, y0, y1 = support_bbox(mx, my, w11, w12, w22, radius, mix,
+                                      math.sqrt(2.0 * cutoff))
     else:
         x0, x1, y0, y1 = kernel_bbox(mx, my, w11, w22, cutoff)
     if x0 > width or x1 < -1 or y0 > height or y1 < -1:
@@ -131,7 +133,6 @@ def project_splat(k, positions, normals, tangents, ru, rv, area, rgb, alpha, lod
     floor_k = floor if node else 0.0
     norm = 0.0
     reach = abs(radius) + math.sqrt(2.0 * cutoff * max_eigenvalue(w11, w12, w22))
-    mix = edge_mix(radius, w11, w22)
     if radius != 0.0:
         # an aperture kernel's mass by quadrature over the direction (bokeh.aperture_mass):
         # at least a pixel wide, its sum over pixel centres is the integral to ~5e-3 (1 % for
