@@ -404,6 +404,25 @@ def test_warnings_are_one_line(workdir, capsys):
     assert re.fullmatch(r"dofsplat: warning: .*dropped 1 of 2 surfels.*\n", err)
 
 
+def test_a_model_too_large_for_float32_is_one_line(workdir, capsys):
+    """Coordinates near 1e30 overflow the frame's float32 arithmetic: the error names the
+    coordinates (it said only "image has N pixels with NaN or inf values" until 2026-11-27),
+    and no file is written."""
+    from dofsplat.io import write_surfel_ply
+
+    n = 100
+    pos = np.random.default_rng(0).uniform(-1, 1, (n, 3)) * 1e30
+    pos[:, 2] = 0
+    write_surfel_ply(workdir / "huge.ply", Surfels(positions=pos, normals=[[0, 0, 1]] * n,
+                                                   radius=np.full(n, 1e29),
+                                                   colors=[[1, 1, 1]] * n))
+    status, out, err = run_main(["render", "huge.ply", "-o", "huge.png", "--size", "16x16",
+                                 "-q"], capsys)
+    assert_one_line_error(status, err)
+    assert "coordinates reach 9.9e+29; rescale it" in err
+    assert not (workdir / "huge.png").exists()
+
+
 def test_a_frame_with_nothing_in_view_says_so(plane_ply, workdir, capsys):
     """A camera that looks away from the model writes the background, and says why (it
     passed in silence until 2026-11-27)."""

@@ -147,6 +147,9 @@ def test_cli_compare_png_against_npy(tmp_path, capsys):
     (lambda p: None, "d.png", "no such file"),
     (lambda p: np.save(p, np.zeros((48, 64, 4), np.float32)), "d.gif", "unsupported image format"),
     (lambda p: np.save(p, np.zeros((48, 64, 4), np.float32)), "a.npy", "overwrite an input"),
+    # the file named (the message had no name until 2026-11-27)
+    (lambda p: np.save(p, np.full((48, 64, 4), np.nan, np.float32)), "d.png",
+     "other.npy: 3,072 pixels with NaN or inf"),
 ])
 def test_cli_compare_mistakes(two_images, tmp_path, capsys, make_b, diff_name, message):
     pa, _ = two_images

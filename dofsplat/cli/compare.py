@@ -40,6 +40,8 @@ def run(args) -> int:
     """``dofsplat compare``: PSNR and SSIM between two images; a difference image on request."""
     import json
 
+    import numpy as np
+
     from ..io import atomic_write, check_output_path, check_writable_path, read_image
     from ..metrics import compare, write_difference
 
@@ -56,6 +58,10 @@ def run(args) -> int:
         raise DofsplatError(f"--diff and --json name the same file: {outputs['diff']}")
 
     a, b = read_image(args.a), read_image(args.b)
+    for name, image in ((args.a, a), (args.b, b)):
+        bad = int(np.count_nonzero(~np.isfinite(image[..., :3]).all(axis=2)))
+        if bad:  # (the metrics would say so too, without the file's name)
+            raise DofsplatError(f"{name}: {bad:,} pixels with NaN or inf values")
     if a.shape[:2] != b.shape[:2]:
         raise DofsplatError(f"the images differ in size: {args.a} is {a.shape[1]}x{a.shape[0]} "
                             f"pixels, {args.b} is {b.shape[1]}x{b.shape[0]}")

@@ -20,6 +20,8 @@ from .options import DEFAULT_FOV_DEG, DEFAULT_SIZE, EXIT_OK
 def render_and_write(args, outputs, surfels, camera, default_focus: float,
                       default_aperture: float) -> int:
     """The part both commands share: lens, settings, autofocus, render, outputs."""
+    import numpy as np
+
     from ..io import write_depth, write_image
     from ..render import focus_distance_at
 
@@ -44,6 +46,14 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
         lens = lens_from_args(args, focus, default_aperture)
 
     result = render_by_method(args, surfels, camera, lens, settings)
+    bad = int(np.count_nonzero(~np.isfinite(result.image).all(axis=2)))
+    if bad:
+        # (write_image would refuse them without a cause: coordinates float32 cannot
+        # square, such as a model at 1e30, are the one seen)
+        reach = float(np.abs(surfels.positions).max(initial=0.0))
+        raise DofsplatError(f"the frame came out with {bad:,} pixels of NaN or inf: the model's "
+                            f"coordinates reach {reach:.3g}; rescale it (a flat test model "
+                            f"rendered at +-1e20 and failed at +-1e22)")
     if result.stats.get("fragments", 1) == 0:
         import warnings
 
