@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from .errors import DofsplatError
+from .io.images import nonfinite_pixels
 
 SPACES = ("srgb", "linear")
 SSIM_SIGMA = 1.5  # Wang et al.'s Gaussian window
@@ -47,7 +48,7 @@ def display_values(image: np.ndarray, space: str = "srgb") -> np.ndarray:
         raise DofsplatError(f"expected an image of shape (H, W) or (H, W, 1..4), got {a.shape}")
     colour = a[..., :3] if a.shape[2] >= 3 else a[..., :1]
     colour = colour.astype(np.float64)
-    bad = int(np.count_nonzero(~np.isfinite(colour).all(axis=2)))
+    bad = nonfinite_pixels(colour)
     if bad:
         raise DofsplatError(f"image has {bad} pixels with NaN or inf values")
     colour = np.clip(colour, 0.0, 1.0)

@@ -147,19 +147,24 @@ def test_general_circumellipse_contains_both_and_reduces_to_appendix():
     np.testing.assert_allclose(ewa.circumellipse_general(4.0, 0.1, 3.0, 1.0, 0.2, 0.5), (4.0, 0.1, 3.0), rtol=1e-12)
 
 
+def random_kernels(seed: int, count: int):
+    """Random kernels, narrow and wide (W = A A^T + I, the prefilter's floor), each at a
+    random centre: (W, W^-1, mx, my, ewa.kernel_bbox at c = 2.5)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        a = rng.normal(size=(2, 2)) * rng.uniform(0.2, 4.0)
+        w = a @ a.T + np.eye(2)
+        mx, my = rng.uniform(10, 20, 2)
+        yield w, np.linalg.inv(w), mx, my, ewa.kernel_bbox(mx, my, w[0, 0], w[1, 1], 2.5)
+
+
 def test_kernel_pixel_sum_equals_a_direct_sum():
     """The exact normalisation's pixel sum (forward differences along and, for narrow
     kernels, down the rows) equals exp(-q) summed directly over the pixel centres inside
     the cutoff, to 1e-12 (measured 7e-15), for random kernels narrow and wide."""
     from dofsplat.splat.ewa import kernel_pixel_sum
 
-    rng = np.random.default_rng(1)
-    for _ in range(300):
-        a = rng.normal(size=(2, 2)) * rng.uniform(0.2, 4.0)
-        w = a @ a.T + np.eye(2)
-        c = np.linalg.inv(w)
-        mx, my = rng.uniform(10, 20, 2)
-        x0, x1, y0, y1 = ewa.kernel_bbox(mx, my, w[0, 0], w[1, 1], 2.5)
+    for w, c, mx, my, (x0, x1, y0, y1) in random_kernels(seed=1, count=300):
         fast = kernel_pixel_sum(mx, my, c[0, 0], c[0, 1], c[1, 1], 2.5, x0, x1, y0, y1, 0.0)
         # directly, over a window 3 px wider than the box all round
         ys, xs = np.mgrid[y0 - 3:y1 + 4, x0 - 3:x1 + 4] + 0.5
@@ -174,20 +179,15 @@ def test_kernel_bbox_is_the_pixels_the_kernel_can_draw():
     farther than sqrt(2 c W_ii) from the mean, where no centre can be inside. The box
     before 2026-11-27 rounded outwards and took one such column or row on each side in
     most cases: 9.3 M pixels scanned for the pinhole plane's 3.8 M fragments, 4.8 M now."""
-    rng = np.random.default_rng(7)
-    for _ in range(400):
-        a = rng.normal(size=(2, 2)) * rng.uniform(0.2, 4.0)
-        w = a @ a.T + np.eye(2)
-        c = np.linalg.inv(w)
-        mx, my = rng.uniform(10, 20, 2)
-        x0, x1, y0, y1 = ewa.kernel_bbox(mx, my, w[0, 0], w[1, 1], 2.5)
+    for w, c, mx, my, (x0, x1, y0, y1) in random_kernels(seed=7, count=400):
         ys, xs = np.mgrid[y0 - 4:y1 + 5, x0 - 4:x1 + 5]
         dx, dy = xs + 0.5 - mx, ys + 0.5 - my
         inside = 0.5 * (c[0, 0] * dx * dx + 2 * c[0, 1] * dx * dy + c[1, 1] * dy * dy) < 2.5
         assert inside.any()
         assert x0 <= xs[inside].min() and xs[inside].max() <= x1
         assert y0 <= ys[inside].min() and ys[inside].max() <= y1
-        # (and the slack for the rasteriser's float32 rows: ewa.BOX_SLACK)
+        # (and the slack for the rasteriser's float32 rows: ewa.BOX_SLACK, 1e-3 px and
+        # 1e-6 of a reach and a coordinate under 25 px here, so under 2e-3 px)
         hx, hy = math.sqrt(5 * w[0, 0]) + 2e-3, math.sqrt(5 * w[1, 1]) + 2e-3
         for j in (x0, x1):
             assert abs(j + 0.5 - mx) < hx

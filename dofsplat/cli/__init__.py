@@ -64,12 +64,12 @@ def main(argv: list[str] | None = None) -> int:
         print_error(str(e))
         return EXIT_USAGE
     except KeyboardInterrupt:
-        return interrupted()
+        return EXIT_INTERRUPTED  # quietly, as a shell's own commands end on Ctrl-C
     except SystemError as e:
         # Ctrl-C inside a numba kernel: the KeyboardInterrupt is pending when the kernel
         # returns, and CPython reports "returned a result with an exception set" over it
         if caused_by_interrupt(e):
-            return interrupted()
+            return EXIT_INTERRUPTED
         raise
 
 
@@ -84,10 +84,6 @@ def entry() -> None:
         sys.stderr.flush()
         os._exit(status)
     sys.exit(status)
-
-
-def interrupted() -> int:
-    return EXIT_INTERRUPTED  # quietly, as a shell's own commands end on Ctrl-C
 
 
 def caused_by_interrupt(e: BaseException) -> bool:

@@ -40,9 +40,8 @@ def run(args) -> int:
     """``dofsplat compare``: PSNR and SSIM between two images; a difference image on request."""
     import json
 
-    import numpy as np
-
-    from ..io import atomic_write, check_output_path, check_writable_path, read_image
+    from ..io import (atomic_write, check_output_path, check_writable_path, nonfinite_pixels,
+                      read_image)
     from ..metrics import compare, write_difference
 
     outputs = {}
@@ -59,7 +58,7 @@ def run(args) -> int:
 
     a, b = read_image(args.a), read_image(args.b)
     for name, image in ((args.a, a), (args.b, b)):
-        bad = int(np.count_nonzero(~np.isfinite(image[..., :3]).all(axis=2)))
+        bad = nonfinite_pixels(image[..., :3])
         if bad:  # (the metrics would say so too, without the file's name)
             raise DofsplatError(f"{name}: {bad:,} pixels with NaN or inf values")
     if a.shape[:2] != b.shape[:2]:

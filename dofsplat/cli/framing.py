@@ -22,7 +22,7 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
     """The part both commands share: lens, settings, autofocus, render, outputs."""
     import numpy as np
 
-    from ..io import write_depth, write_image
+    from ..io import nonfinite_pixels, write_depth, write_image
     from ..render import focus_distance_at
 
     settings = settings_from_args(args)
@@ -46,7 +46,7 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
         lens = lens_from_args(args, focus, default_aperture)
 
     result = render_by_method(args, surfels, camera, lens, settings)
-    bad = int(np.count_nonzero(~np.isfinite(result.image).all(axis=2)))
+    bad = nonfinite_pixels(result.image)
     if bad:
         # (write_image would refuse them without a cause: coordinates float32 cannot
         # square, such as a model at 1e30, are the one seen)

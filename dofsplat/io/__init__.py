@@ -19,7 +19,8 @@ from ..errors import DofsplatError
 from ..surfels import Surfels
 from ..colors import linear_to_srgb, srgb_to_linear
 from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path,
-                     check_writable_path, read_image, write_depth, write_image)
+                     check_writable_path, nonfinite_pixels, read_image, write_depth,
+                     write_image)
 from .e57 import E57_EXTENSIONS, read_e57
 from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
@@ -43,7 +44,8 @@ SAVERS: dict[str, Callable[..., object]] = {
 }
 
 __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
-           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "read_image",
+           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "nonfinite_pixels",
+           "read_image",
            "read_e57", "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
 

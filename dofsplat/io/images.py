@@ -204,6 +204,11 @@ def write_depth(path, depth: np.ndarray) -> Path:
     return atomic_write(path, write_fn)
 
 
+def nonfinite_pixels(image) -> int:
+    """How many pixels of an (H, W, C) image hold a NaN or an infinity in any channel."""
+    return int(np.count_nonzero(~np.isfinite(image).all(axis=2)))
+
+
 def _check_rgba(rgba) -> np.ndarray:
     rgba = np.asarray(rgba)
     if rgba.ndim != 3 or rgba.shape[2] not in (3, 4) or 0 in rgba.shape:
@@ -211,7 +216,7 @@ def _check_rgba(rgba) -> np.ndarray:
     if not np.issubdtype(rgba.dtype, np.floating):
         raise DofsplatError(f"image must be floating point (linear RGB), got {rgba.dtype}")
     rgba = np.ascontiguousarray(rgba, dtype=np.float32)
-    bad = int(np.count_nonzero(~np.isfinite(rgba).all(axis=2)))
+    bad = nonfinite_pixels(rgba)
     if bad:
         raise DofsplatError(f"image has {bad} pixels with NaN or inf values")
     return rgba
