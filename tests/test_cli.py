@@ -325,6 +325,37 @@ def test_user_mistakes(case, plane_ply, workdir, capsys):
     assert set(os.listdir(workdir)) == before  # no output, no temporary left behind
 
 
+def _tetrahedron_obj(path):
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+                    "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+
+
+# the loaders' keywords (k, smooth, material) are the API's words: the command line names
+# its own options, and the ones that apply to the file
+BAD_INPUT_OPTIONS = {
+    "surfels-k-no-smooth": (["render", "{ply}", "-o", "out.png", "--k", "8", "--no-smooth"],
+                            "plane.ply: --k, --no-smooth do not apply to a surfel PLY; it "
+                            "takes --normalise"),
+    "mesh-k": (["convert", "t.obj", "-o", "out.ply", "--k", "8"],
+               "t.obj: --k does not apply to a .obj file; it takes --points, --texture, "
+               "--no-smooth, --normalise"),
+    "points-too-many": (["convert", "t.obj", "-o", "out.ply", "--points", "60000000"],
+                        "argument --points: must be between 1 and 50,000,000, got '60000000'"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUT_OPTIONS))
+def test_input_option_errors_name_the_options(case, plane_ply, workdir, capsys):
+    argv, message = BAD_INPUT_OPTIONS[case]
+    _tetrahedron_obj(workdir / "t.obj")
+    before = set(os.listdir(workdir))
+    status, out, err = run_main([a.format(ply=plane_ply) for a in argv], capsys)
+    assert_one_line_error(status, err)
+    assert err.rstrip("\n").endswith(message), err
+    assert "material" not in err
+    assert set(os.listdir(workdir)) == before
+
+
 def test_interrupt_exits_quietly(workdir, capsys, monkeypatch):
     import dofsplat.demo
 

@@ -122,10 +122,29 @@ def default_output(model: str) -> str:
     return (name or "render") + ".png"
 
 
+# the input options, by the keyword of dofsplat.io.load that each one sets
+LOADER_FLAGS = {"points": "--points", "texture": "--texture", "k": "--k",
+                "smooth": "--no-smooth", "normalise": "--normalise"}
+
+
 def loader_options(args) -> dict:
-    """The input options the user gave, as keywords for dofsplat.io.load."""
-    names = ("points", "texture", "k", "smooth", "normalise")
-    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+    """The input options the user gave, as keywords for dofsplat.io.load. An option that does
+    not apply to the model file (--k for a mesh) is a DofsplatError naming the options as the
+    user typed them (load's own error names its keywords: k, smooth)."""
+    from ..io import model_options
+
+    given = {n: getattr(args, n) for n in LOADER_FLAGS if getattr(args, n, None) is not None}
+    if not given:
+        return given
+    what, accepted = model_options(args.input)
+    wrong = [LOADER_FLAGS[n] for n in given if n not in accepted]
+    if wrong:
+        verb = "does" if len(wrong) == 1 else "do"
+        takes = (", ".join(LOADER_FLAGS[n] for n in accepted if n in LOADER_FLAGS)
+                 or "none of the input options")
+        raise DofsplatError(f"{args.input}: {', '.join(wrong)} {verb} not apply to {what}; "
+                            f"it takes {takes}")
+    return given
 
 
 def default_normalisation(path: Path) -> str:
@@ -147,8 +166,10 @@ def sample_count(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number or 'vertices', got "
                                          f"{text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    from ..prep.meshes import MAX_SAMPLES  # numba with it: only when --points is given
+
+    if not 1 <= value <= MAX_SAMPLES:
+        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_SAMPLES:,}, got {text!r}")
     return value
 
 

@@ -26,7 +26,7 @@ from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
 from . import prepared
 from .pcd import PCD_EXTENSIONS, read_pcd
-from .ply import read_ply, read_surfel_ply, write_surfel_ply
+from .ply import ply_options, read_ply, read_ply_header, read_surfel_ply, write_surfel_ply
 
 LOADERS: dict[str, Callable[..., Surfels]] = {
     # any PLY: surfels, 3DGS, a mesh or bare points, told apart by its header
@@ -44,7 +44,8 @@ SAVERS: dict[str, Callable[..., object]] = {
 }
 
 __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
-           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "nonfinite_pixels",
+           "check_output_path", "check_writable_path", "linear_to_srgb", "load", "model_options",
+           "nonfinite_pixels",
            "read_image",
            "read_e57", "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
            "save_surfels", "srgb_to_linear", "write_depth", "write_image", "write_surfel_ply"]
@@ -68,16 +69,28 @@ def load(path, cache: str = "auto", **options) -> Surfels:
     extension, an option the loader does not take, or whatever the loader finds wrong
     with the file.
     """
-    path = Path(path)
-    if not path.exists():
-        raise DofsplatError(f"no such file: {path}")
-    if not path.is_file():
-        raise DofsplatError(f"not a file: {path}")
+    path = _model_file(path)
     loader = LOADERS[_extension(path, LOADERS, "model")]
     _check_options(loader, path, options)
     if cache not in ("auto", "off"):
         raise DofsplatError(f"cache must be 'auto' or 'off', got {cache!r}")
     return prepared.load_prepared(path, loader, options, use_cache=cache == "auto")
+
+
+def model_options(path) -> tuple[str, tuple[str, ...]]:
+    """What :func:`load` makes of the model file at path, from its extension (and a PLY's
+    header): (the kind of model in words, such as "a triangle mesh" or "a .laz file"; the
+    options that apply to it besides ``material``, which applies to all). The command line
+    checks its input options against these before loading, so that its message names them
+    as the user typed them. Raises DofsplatError as :func:`load` does for a missing file or
+    an unsupported extension."""
+    path = _model_file(path)
+    ext = _extension(path, LOADERS, "model")
+    loader = LOADERS[ext]
+    if loader is read_ply:
+        return ply_options(read_ply_header(path))
+    names = list(inspect.signature(loader).parameters)[1:]
+    return f"a {ext} file", tuple(n for n in names if n != "material")
 
 
 def save_surfels(path, surfels: Surfels, **options) -> Path:
@@ -89,6 +102,16 @@ def save_surfels(path, surfels: Surfels, **options) -> Path:
     saver = SAVERS[_extension(path, SAVERS, "model")]
     _check_options(saver, path, options, skip=2)
     return saver(path, surfels, **options)
+
+
+def _model_file(path) -> Path:
+    """path as a Path, or DofsplatError when it is missing or not a file."""
+    path = Path(path)
+    if not path.exists():
+        raise DofsplatError(f"no such file: {path}")
+    if not path.is_file():
+        raise DofsplatError(f"not a file: {path}")
+    return path
 
 
 def _extension(path: Path, registry: dict, what: str) -> str:

@@ -356,6 +356,13 @@ _KIND_OPTIONS = {"surfels": ("normalise",), "gaussians": ("normalise",),
                  "points": ("k", "smooth", "normalise")}
 
 
+def ply_options(header: PlyHeader) -> tuple[str, tuple[str, ...]]:
+    """(what the PLY holds, in words; the options of :func:`read_ply` that apply to it, besides
+    ``material``, which applies to all)."""
+    kind = ply_kind(header)
+    return _KIND_WORDS[kind], _KIND_OPTIONS[kind]
+
+
 def read_ply(path, *, material: Material | None = None, points: int | str | None = None,
              k: int | None = None, smooth: bool | None = None, texture=None,
              normalise: str | None = None) -> Surfels:
