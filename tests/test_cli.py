@@ -356,6 +356,36 @@ def test_input_option_errors_name_the_options(case, plane_ply, workdir, capsys):
     assert set(os.listdir(workdir)) == before
 
 
+def test_a_damaged_e57_is_its_whole_first_line(workdir, capsys):
+    """libE57Format's message is one line followed by eight of debug context; the error
+    keeps the first whole (it was the nine run together, cut at 300 characters)."""
+    pye57 = pytest.importorskip("pye57", reason="pye57 (the e57 extra) is not installed")
+    e57 = pye57.E57(str(workdir / "scan.e57"), mode="w")
+    xyz = np.arange(300.0)
+    e57.write_scan_raw({"cartesianX": xyz, "cartesianY": xyz, "cartesianZ": xyz})
+    e57.close()
+    data = (workdir / "scan.e57").read_bytes()
+    (workdir / "cut.e57").write_bytes(data[:len(data) // 2])
+    before = set(os.listdir(workdir))
+    status, out, err = run_main(["render", "cut.e57", "-o", "out.png"], capsys)
+    assert_one_line_error(status, err)
+    assert err == ("dofsplat: error: cut.e57: corrupt or truncated E57 file: E57Exception: "
+                   "size in file header not same as actual (ErrorBadFileLength)\n")
+    assert set(os.listdir(workdir)) == before
+
+
+def test_a_long_library_message_is_cut_at_a_word():
+    from dofsplat.errors import LIBRARY_MESSAGE_CHARS, library_message
+
+    words = " ".join(f"word{i}" for i in range(200))  # 1,290 characters on one line
+    text = library_message(ValueError(words + "\n  second line"))
+    assert text.startswith("ValueError: word0 word1 ") and text.endswith(" ...")
+    kept = text[len("ValueError: "):-len(" ...")]
+    assert words.startswith(kept + " ") and len(kept) <= LIBRARY_MESSAGE_CHARS
+    assert len(kept) > LIBRARY_MESSAGE_CHARS - len("word199 ")  # cut at the last space
+    assert library_message(KeyError()) == "KeyError: no details"
+
+
 def test_interrupt_exits_quietly(workdir, capsys, monkeypatch):
     import dofsplat.demo
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DofsplatError
+from ..errors import DofsplatError, library_message
 from ..surfels import Material, Surfels
 
 E57_EXTENSIONS = (".e57",)
@@ -85,9 +85,8 @@ def read_e57_points(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     except PermissionError as e:
         raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
     except Exception as e:  # libE57Format raises its own types for damaged files
-        text = " ".join(str(e).split()) or "no details"
-        raise DofsplatError(f"{path}: corrupt or truncated E57 file: {type(e).__name__}: "
-                            f"{text[:300]}") from e
+        raise DofsplatError(f"{path}: corrupt or truncated E57 file: "
+                            f"{library_message(e)}") from e
     if not parts:
         raise DofsplatError(f"{path}: the file holds no points")
     positions = np.concatenate([p[0] for p in parts])

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DofsplatError
+from ..errors import DofsplatError, library_message
 from ..surfels import Material, Surfels
 
 LAS_EXTENSIONS = (".las", ".laz")
@@ -77,9 +77,8 @@ def read_las_points(path) -> tuple[np.ndarray, np.ndarray | None, float]:
     except PermissionError as e:
         raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
     except Exception as e:  # laspy and lazrs raise many types for a damaged file
-        text = " ".join(str(e).split()) or "no details"
         raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: "
-                            f"{type(e).__name__}: {text[:300]}") from e
+                            f"{library_message(e)}") from e
     if n == 0 or len(positions) == 0:
         raise DofsplatError(f"{path}: the file holds no points")
     colors = None

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DofsplatError
+from ..errors import DofsplatError, library_message
 from ..surfels import Material, Surfels
 
 MESH_EXTENSIONS = (".obj", ".gltf", ".glb", ".stl", ".off")
@@ -90,9 +90,7 @@ def _load_scene(path: Path):
     except PermissionError as e:
         raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
     except Exception as e:  # trimesh, numpy, json and zip raise many types for bad files
-        text = " ".join(str(e).split()) or "no details"
-        raise DofsplatError(f"{path}: cannot read the mesh: {type(e).__name__}: "
-                            f"{text[:300]}") from e
+        raise DofsplatError(f"{path}: cannot read the mesh: {library_message(e)}") from e
     finally:
         logger.removeHandler(handler)
 
@@ -214,5 +212,5 @@ def load_texture(path) -> np.ndarray:
     except DofsplatError:
         raise
     except Exception as e:  # Pillow raises many types for a damaged image
-        raise DofsplatError(f"{path}: cannot read the texture image: {type(e).__name__}: "
-                            f"{' '.join(str(e).split())[:200]}") from e
+        raise DofsplatError(f"{path}: cannot read the texture image: "
+                            f"{library_message(e)}") from e
