@@ -386,6 +386,40 @@ def test_a_long_library_message_is_cut_at_a_word():
     assert library_message(KeyError()) == "KeyError: no details"
 
 
+# argparse takes "-320x240" or "-1e3" for an unknown option ("--size: expected one
+# argument"); the value reaches its option's check, and plain negative numbers stay values
+NEGATIVE_VALUES = {
+    "size": (["demo", "--size", "-320x240", "-o", "out.png"],
+             "argument --size: the image needs at least 1x1 pixels, got '-320x240'"),
+    "size-attached": (["demo", "--size=320x-240", "-o", "out.png"],
+                      "argument --size: the image needs at least 1x1 pixels, got '320x-240'"),
+    "focus-exponent": (["demo", "--focus", "-1e-3", "-o", "out.png"],
+                       "argument --focus: must be > 0, got '-1e-3'"),
+    # accepted, so the missing model is the first mistake found
+    "accepted": (["render", "missing.ply", "-o", "out.png", "--blade-rotation", "-1.5e1",
+                  "--eye", "-1", "2", "3", "--target", "-.5", "0", "0"],
+                 "no such file: missing.ply"),
+}
+
+
+@pytest.mark.parametrize("case", list(NEGATIVE_VALUES))
+def test_negative_values_reach_their_option(case, workdir, capsys):
+    argv, message = NEGATIVE_VALUES[case]
+    status, out, err = run_main(argv, capsys)
+    assert_one_line_error(status, err)
+    assert err == f"dofsplat: error: {message}\n"
+    assert os.listdir(workdir) == []
+
+
+def test_negative_values_are_attached_to_long_options_only():
+    from dofsplat.cli.options import attach_negative_values
+
+    assert attach_negative_values(["demo", "--size", "-3x3", "--eye", "-1", "-2.5", "-1e3",
+                                   "-o", "-4.png", "--", "--focus", "-1e3"]) == [
+        "demo", "--size=-3x3", "--eye", "-1", "-2.5", "-1e3", "-o", "-4.png", "--",
+        "--focus", "-1e3"]
+
+
 def test_interrupt_exits_quietly(workdir, capsys, monkeypatch):
     import dofsplat.demo
 

@@ -38,7 +38,7 @@ from ..errors import DofsplatError
 from . import animate, cache, compare, convert, demo, reference, render, view
 from .framing import format_count
 from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatter, Parser,
-                      default_output)
+                      attach_negative_values, default_output)
 
 __all__ = ["main", "entry", "build_parser", "default_output", "format_count", "EXIT_OK", "EXIT_USAGE",
            "EXIT_INTERRUPTED"]
@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
         try:
-            args = parser.parse_args(argv)
+            args = parser.parse_args(attach_negative_values(sys.argv[1:] if argv is None
+                                                            else list(argv)))
         except SystemExit as e:  # --help and --version exit through here, status 0
             return e.code if isinstance(e.code, int) else EXIT_OK
         if getattr(args, "quiet", False):

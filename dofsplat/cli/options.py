@@ -106,6 +106,36 @@ def add_input_options(p: argparse.ArgumentParser) -> None:
                             "these options; 'dofsplat cache' shows and clears it)")
 
 
+# argparse reads a word that starts with "-" as an option, unless it is a plain negative
+# number: "-2" and "-0.5" are values, "-320x240" and "-1e3" are unknown options. No option of
+# dofsplat starts with "-" and a digit, so such a word is a value.
+NEGATIVE_VALUE = re.compile(r"-\.?\d")
+PLAIN_NEGATIVE_NUMBER = re.compile(r"-\d+|-\d*\.\d+")  # argparse's own test, whole word
+
+
+def attach_negative_values(argv: list[str]) -> list[str]:
+    """argv with a long option followed by a value that starts with "-" and a digit written
+    as one word, "--size=-320x240": argparse would take "-320x240" for an option and say
+    "--size: expected one argument"; attached, the value reaches the option's own check ("the
+    image needs at least 1x1 pixels"). Plain negative numbers, which argparse reads as values
+    (``--eye -1 2 3``), and the words after "--" are left as they are."""
+    words = []
+    i = 0
+    while i < len(argv):
+        word = argv[i]
+        if word == "--":
+            return words + argv[i:]
+        value = argv[i + 1] if i + 1 < len(argv) else ""
+        if (word.startswith("--") and "=" not in word and NEGATIVE_VALUE.match(value)
+                and not PLAIN_NEGATIVE_NUMBER.fullmatch(value)):
+            words.append(f"{word}={value}")
+            i += 2
+        else:
+            words.append(word)
+            i += 1
+    return words
+
+
 def prep_cache(args) -> str:
     """load()'s cache: "off" with --no-cache."""
     return "off" if getattr(args, "no_cache", False) else "auto"
@@ -378,7 +408,8 @@ def blade_count(text: str) -> int:
 
 
 def image_size(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    # signs are read, so that -320x240 is told it is too small, not that it is not WxH
+    m = re.fullmatch(r"\s*([-+]?\d+)\s*[xX]\s*([-+]?\d+)\s*", text)
     if not m:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 640x480, "
                                          f"got {text!r}")
