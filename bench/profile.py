@@ -4,6 +4,7 @@
     python bench/profile.py --scenes big         # 10 M surfels at 1920x1080, time and memory
     python bench/profile.py --scenes empty       # 1280x720 with nothing in view: per-pixel cost
     python bench/profile.py --scenes intersect   # two crossing planes: the front pass's worst case
+    python bench/profile.py --scenes leaves pane # the fidelity suite's dearest blurred frames
     python bench/profile.py --no-exact           # the paper's analytic normalisation instead
     python bench/profile.py --sharp-visibility   # the front pass in the pinhole frames too
     python bench/profile.py --json out.json      # the figures as JSON too
@@ -45,7 +46,10 @@ APERTURES = {"plane": (0.0, 0.1, 0.4), "lion": (0.0, 0.5, 2.0), "demo": (0.0, 0.
              "big": (0.0, 0.1, 0.4), "empty": (0.0,),
              # two planes crossing (the fidelity suite's): a CoC of up to 10 and 20 px, and
              # most of the rear plane behind the front one (the front pass's worst case)
-             "intersect": (0.0, 0.1, 0.2)}
+             "intersect": (0.0, 0.1, 0.2),
+             # the fidelity suite's two dearest blurred frames against their pinhole frame
+             # (bench/fidelity.py: the lion's leaves and the pane at a CoC of 10 and 40 px)
+             "leaves": (0.0, 0.4151, 1.66), "pane": (0.0, 0.02103, 0.08411)}
 BIG_SIDE = 3163  # surfels per side of the big plane: 10,004,569
 
 
@@ -64,6 +68,13 @@ def scene(name: str):
         from dofsplat.demo import intersecting_planes_scene
 
         return intersecting_planes_scene(512, 512)
+    if name in ("leaves", "pane"):  # 512 x 512, their focus, the suite's settings aside
+        import fidelity
+
+        made = (fidelity.lion_leaves_scene if name == "leaves" else fidelity.pane_scene)(512, 512)
+        if made is None:
+            raise SystemExit(f"{name}: the model is not in ../shared/data")
+        return made.surfels, made.camera, made.lens(1.0)
     if name == "empty":  # a 1280 x 720 frame with nothing in view: the cost per pixel alone
         _, camera, lens = plane_scene(1280, 720)
         far = ds.Surfels(positions=[[0.0, 0.0, 50.0]], normals=[[0.0, 0.0, 1.0]], radius=[0.01],
