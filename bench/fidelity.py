@@ -247,8 +247,8 @@ def reference_key(scene: FidelityScene, lens: ds.ThinLens, samples: int) -> str:
               s.weight):
         digest.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
     # the settings a pinhole sample uses: not the LOD's nor the device's
-    skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "lod_min_node", "show_lod",
-            "device", "max_tile_pairs", "lens_samples"}
+    skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "lod_min_node",
+            "lod_color_tolerance", "show_lod", "device", "max_tile_pairs", "lens_samples"}
     settings = {k: v for k, v in dataclasses.asdict(scene.settings).items() if k not in skip}
     meta = {"version": REFERENCE_VERSION, "scene": scene.name,
             "size": [scene.camera.width, scene.camera.height], "camera": repr(scene.camera),
@@ -497,6 +497,11 @@ def main(argv=None) -> int:
     ap.add_argument("--lod-min-node", type=int, default=ds.RenderSettings.lod_min_node,
                     help="the smallest node ours' blur may draw (RenderSettings.lod_min_node; "
                          "default the renderer's, 4; 2: any node, the paper's)")
+    ap.add_argument("--lod-color-tolerance", type=float,
+                    default=ds.RenderSettings.lod_color_tolerance,
+                    help="ours' finer cut for textured nodes (RenderSettings."
+                         "lod_color_tolerance; default the renderer's, 0.02; inf: none, "
+                         "the paper's)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]
@@ -516,7 +521,8 @@ def main(argv=None) -> int:
             continue
         scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples,
                                              lod_blur_fraction=args.lod_blur_fraction,
-                                             lod_min_node=args.lod_min_node)
+                                             lod_min_node=args.lod_min_node,
+                                             lod_color_tolerance=args.lod_color_tolerance)
         print(f"{name}: {len(scene.surfels):,} surfels, {size[0]}x{size[1]}, N = {samples}; "
               f"{scene.note}", file=sys.stderr)
         scene_rows, frames = measure_scene(scene, samples, repeat, TARGET_COC_PX, cache,
@@ -533,6 +539,7 @@ def main(argv=None) -> int:
               "reference_version": REFERENCE_VERSION, "load_average": load,
               "lens_samples": args.lens_samples, "lod_blur_fraction": args.lod_blur_fraction,
               "lod_min_node": args.lod_min_node,
+              "lod_color_tolerance": args.lod_color_tolerance,
               "run_s": time.perf_counter() - t_start, "scene_s": scene_s, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(_finite(record), indent=1, default=_json_number, allow_nan=False) + "\n"
