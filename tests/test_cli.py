@@ -6,6 +6,7 @@ the numba kernels load once; a few run ``python -m dofsplat`` end to end.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -278,6 +279,7 @@ BAD_RENDER = {
     "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None),
     "output-in-a-file": (["render", "{ply}", "-o", "f.ply/out.png"], ("f.ply", _garbage_ply)),
     "k-too-small": (["render", "{ply}", "-o", "out.png", "--k", "1"], None),
+    "k-too-large": (["render", "{ply}", "-o", "out.png", "--k", "1000"], None),
     # a folder no one may write in, root included (os.access said yes to root, and the
     # error came after the render as a traceback, until 2026-11-27)
     "unwritable-output-dir": (["render", "{ply}", "-o", "/proc/out.png"], None),
@@ -646,3 +648,15 @@ def test_summary_counts_say_what_they_mean():
     assert _count(466_314) == "466.3k"
     assert _count(20_912_345) == "20.9M"
     assert _count(6_200_000_000) == "6.2G"
+
+
+def test_the_neighbour_bounds_are_the_loaders():
+    """The command line writes out prep.pointcloud's bounds on K (importing them would load
+    numba for every command); the two must agree, and the message name them."""
+    from dofsplat.cli.options import MAX_NEIGHBOURS, MIN_NEIGHBOURS, neighbour_count
+    from dofsplat.prep.pointcloud import MAX_K, MIN_K
+
+    assert (MIN_NEIGHBOURS, MAX_NEIGHBOURS) == (MIN_K, MAX_K)
+    assert neighbour_count(str(MAX_K)) == MAX_K
+    with pytest.raises(argparse.ArgumentTypeError, match="from 4 to 256 neighbours"):
+        neighbour_count(str(MAX_K + 1))

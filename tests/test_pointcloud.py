@@ -318,7 +318,7 @@ def test_bad_point_clouds_are_one_clear_error(positions, message):
 
 def test_bad_k_and_shapes():
     pts = grid_points(10, 0.1)
-    for k in (0, 3, 2.5, True, "8"):
+    for k in (0, 3, 2.5, True, "8", 257, 10**6):
         with pytest.raises(DofsplatError, match="k"):
             points_to_surfels(pts, k=k, progress=False)
     with pytest.raises(DofsplatError, match="colors"):

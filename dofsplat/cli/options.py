@@ -460,10 +460,16 @@ def min_node_count(text: str) -> int:
     return m
 
 
+# prep.pointcloud's MIN_K and MAX_K, written out: importing it here would load numba and
+# scipy for every command line (tests/test_cli.py checks that they agree)
+MIN_NEIGHBOURS, MAX_NEIGHBOURS = 4, 256
+
+
 def neighbour_count(text: str) -> int:
     value = whole_number(text)
-    if value < 4:  # prep.pointcloud.MIN_K: fewer cannot fit a plane (imported lazily there)
-        raise argparse.ArgumentTypeError(f"must be at least 4 neighbours, got {text!r}")
+    if not MIN_NEIGHBOURS <= value <= MAX_NEIGHBOURS:
+        raise argparse.ArgumentTypeError(f"must be from {MIN_NEIGHBOURS} to {MAX_NEIGHBOURS} "
+                                         f"neighbours, got {text!r}")
     return value
 
 

@@ -60,15 +60,15 @@ def read_mesh(path, *, material: Material | None = None, points: int | str | Non
     if image is not None:
         textured = [p for p in parts if p.uv is not None]
         if not textured:
-            raise DofsplatError(f"{path}: --texture needs texture coordinates (vt in an OBJ), "
-                                "and the mesh has none")
+            raise DofsplatError(f"{path}: a texture image needs texture coordinates (vt in "
+                                "an OBJ), and the mesh has none")
         for p in textured:
             # the given image replaces the part's own texture and colours
             p.texture, p.vertex_colors, p.base_color = image, None, (1.0, 1.0, 1.0, 1.0)
     elif any(p.uv is not None and p.texture is None and p.vertex_colors is None
              for p in parts):
         warnings.warn(f"{path}: the mesh has texture coordinates but no texture image; "
-                      "give one with --texture FILE", stacklevel=2)
+                      "give one (--texture FILE; texture= in dofsplat.io.load)", stacklevel=2)
     return mesh_to_surfels(parts, points, material=material, smooth=smooth,
                            normalise=normalise, source=str(path))
 

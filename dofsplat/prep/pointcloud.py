@@ -59,6 +59,10 @@ DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 c
 # sum to 1 +- 0.1 with k = 12, 0.949 / 0.967 with 16, 0.960 / 0.970 with 24; the dragon
 # reads the same with 16 or 24; docs/maths.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
+# more is no better fit (the plane of 256 neighbours already spans a dense scan's features)
+# and the neighbour lists take 12 bytes a neighbour and a point: K = 256 on 10 M points is
+# 30 GB, and a K of a million on a million points asked for 12 TB before it was refused
+MAX_K = 256
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
 CLUSTER_RADIUS_FACTOR = 2.0  # radius <= this x the distance to the 4th neighbour
@@ -80,7 +84,7 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     normals:   (N, 3) float or None; rows that are zero or not finite (and all rows when
                None) are estimated by PCA. Given normals keep their sign unless
                ``viewpoint`` is given.
-    k:         neighbours for PCA and the density (default ``DEFAULT_K`` = 24; at least 4)
+    k:         neighbours for PCA and the density (default ``DEFAULT_K`` = 24; 4 to ``MAX_K`` = 256)
     viewpoint: (3,) sensor or camera position, world units, or (N, 3), one per point (the
                scans of a multi-scan capture): every normal is turned towards it. None: estimated normals are oriented consistently by propagation over
                the neighbour graph (outward for closed surfaces); given normals seed it.
@@ -725,8 +729,9 @@ def _merge_duplicates(pts, cols, nrm, source):
 def _check_k(k, n: int) -> int:
     if k is None:
         k = DEFAULT_K
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < MIN_K:
-        raise DofsplatError(f"k (neighbours) must be an integer >= {MIN_K}, got {k!r}")
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not MIN_K <= k <= MAX_K:
+        raise DofsplatError(f"k (neighbours) must be an integer from {MIN_K} to {MAX_K}, "
+                            f"got {k!r}")
     return int(min(k, n - 1))
 
 
