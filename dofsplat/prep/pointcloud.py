@@ -60,8 +60,9 @@ DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 c
 # reads the same with 16 or 24; docs/maths.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
 # more is no better fit (the plane of 256 neighbours already spans a dense scan's features)
-# and the neighbour lists take 12 bytes a neighbour and a point: K = 256 on 10 M points is
-# 30 GB, and a K of a million on a million points asked for 12 TB before it was refused
+# and the neighbour lists take 16 bytes a neighbour and a point (prep.neighbours): K = 256
+# on 10 M points is 41 GB, and a K of a million on a million points asked for 16 TB before
+# it was refused
 MAX_K = 256
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
