@@ -42,6 +42,8 @@ from .surfels import Surfels
 
 FIELDS = {"eye": 3, "target": 3, "up": 3, "fov": 1, "focus": 1, "focus_at": 2, "aperture": 1,
           "orbit": 1}
+RANGES = {"focus": (lambda v: v > 0, "> 0"), "aperture": (lambda v: v >= 0, ">= 0"),
+          "fov": (lambda v: 0 < v < 180, "in (0, 180) degrees")}  # what a lens or camera takes
 EASINGS = ("smooth", "linear")
 FRAME_FORMATS = ("png", "npy", "exr")
 VIDEO_SUFFIXES = (".mp4", ".gif")
@@ -50,10 +52,33 @@ MANIFEST = ".dofsplat-sequence.json"  # in a frame folder: which sequence its fr
 
 @dataclass(frozen=True)
 class Keyframe:
-    """Some of a frame's camera and lens values at time t in [0, 1] (module docstring)."""
+    """Some of a frame's camera and lens values at time t in [0, 1] (module docstring).
+
+    Checked when made: a field FIELDS names, with as many finite numbers as it takes (a
+    bare number for a one-number field), a focus > 0, an aperture >= 0 and a fov in
+    (0, 180); DofsplatError otherwise."""
 
     t: float
     values: dict  # field name -> tuple of floats (FIELDS gives each one's length)
+
+    def __post_init__(self):
+        t = _numbers(self.t, 1, "t")[0]
+        if not 0.0 <= t <= 1.0:
+            raise DofsplatError(f"t must be in 0..1, got {t:g}")
+        if not isinstance(self.values, dict):
+            raise DofsplatError(f"values must be a dict of field name -> numbers, got "
+                                f"{type(self.values).__name__}")
+        unknown = sorted(set(self.values) - set(FIELDS), key=str)
+        if unknown:
+            raise DofsplatError(f"unknown field {unknown[0]!r} (known: {', '.join(FIELDS)})")
+        values = {name: _numbers(v, FIELDS[name], name) for name, v in self.values.items()}
+        if "focus" in values and "focus_at" in values:
+            raise DofsplatError("gives both focus and focus_at: give one")
+        for name, (valid, text) in RANGES.items():
+            if name in values and not valid(values[name][0]):
+                raise DofsplatError(f"{name} must be {text}, got {values[name][0]:g}")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "values", values)
 
 
 @dataclass(frozen=True)
@@ -87,18 +112,10 @@ def keyframes_from_json(data, source: str = "keyframes") -> tuple[list[Keyframe]
         if "t" not in item:
             raise DofsplatError(f"{where} has no \"t\" (its time, 0 the first frame, 1 the "
                                 "last)")
-        unknown = sorted(set(item) - set(FIELDS) - {"t"})
-        if unknown:
-            raise DofsplatError(f"{where}: unknown field {unknown[0]!r} (known: t, "
-                                f"{', '.join(FIELDS)})")
-        t = _numbers(item["t"], 1, f"{where}: t")[0]
-        if not 0.0 <= t <= 1.0:
-            raise DofsplatError(f"{where}: t must be in 0..1, got {t:g}")
-        values = {name: _numbers(item[name], FIELDS[name], f"{where}: {name}")
-                  for name in FIELDS if name in item}
-        if "focus" in values and "focus_at" in values:
-            raise DofsplatError(f"{where} gives both focus and focus_at")
-        keys.append(Keyframe(t, values))
+        try:
+            keys.append(Keyframe(item["t"], {k: v for k, v in item.items() if k != "t"}))
+        except DofsplatError as e:
+            raise DofsplatError(f"{where}: {e}") from None
     keys.sort(key=lambda k: k.t)
     return keys, easing
 

@@ -47,6 +47,26 @@ def test_keyframe_interpolation_is_eased_between_keys():
     assert lin == pytest.approx(2.5)
 
 
+def test_keyframes_are_checked_when_made():
+    """A Keyframe built in Python is checked as a keyframe file's are (a bare number for a
+    one-number field; a mistake is a DofsplatError naming the field), and a value no lens
+    or camera takes is refused at its keyframe, which a file's error names."""
+    assert sequence.Keyframe(0, {"focus": 2}).values == {"focus": (2.0,)}
+    for t, values, message in [
+            (0.0, {"zoom": (2.0,)}, "unknown field 'zoom'"),
+            (1.5, {"focus": (2.0,)}, r"t must be in 0\.\.1, got 1\.5"),
+            ("0", {"focus": (2.0,)}, "t must be a number, got '0'"),
+            (0.0, {"eye": (0.0, 1.0)}, "eye must be 3 numbers"),
+            (0.0, [("focus", 2.0)], "values must be a dict"),
+            (0.0, {"focus": (-2.0,)}, "focus must be > 0, got -2"),
+            (0.0, {"aperture": (-0.1,)}, "aperture must be >= 0, got -0.1"),
+            (0.0, {"fov": (200.0,)}, r"fov must be in \(0, 180\) degrees, got 200")]:
+        with pytest.raises(DofsplatError, match=message):
+            sequence.Keyframe(t, values)
+    with pytest.raises(DofsplatError, match=r"^moves\.json: keyframe 1: focus must be > 0, got 0$"):
+        sequence.keyframes_from_json([{"t": 0, "focus": 2}, {"t": 1, "focus": 0}], "moves.json")
+
+
 def test_frame_specs_focus_pull_and_orbit(scene):
     surfels, camera, lens = scene
     keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "orbit": (0.0,)}),
