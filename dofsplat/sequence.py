@@ -158,8 +158,12 @@ def frame_specs(keys: list[Keyframe], n_frames: int, camera: Camera, lens: ThinL
     """Each frame's camera and lens: the base ``camera`` and ``lens`` with the keyframes'
     values at t = k / (n_frames - 1). A ``focus_at`` pixel is focused on (a pinhole frame of
     ``surfels`` from that keyframe's camera) and interpolated as a distance."""
-    if n_frames < 1:
-        raise DofsplatError(f"a sequence needs at least 1 frame, got {n_frames}")
+    if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
+        raise DofsplatError(f"n_frames must be an integer >= 1, got {n_frames!r}")
+    if not isinstance(keys, (list, tuple)) or not all(isinstance(k, Keyframe) for k in keys):
+        raise DofsplatError("keyframes must be a list of Keyframe (keyframes_from_json reads "
+                            "a file's)")
+    keys = sorted(keys, key=lambda k: k.t)  # interpolate() walks them in time
     keys = _resolve_focus_at(keys, camera, surfels, settings, easing)
     specs = []
     for k in range(n_frames):

@@ -67,6 +67,20 @@ def test_keyframes_are_checked_when_made():
         sequence.keyframes_from_json([{"t": 0, "focus": 2}, {"t": 1, "focus": 0}], "moves.json")
 
 
+def test_frame_specs_take_keyframes_in_any_order(scene):
+    """Keyframes made in Python may come in any order (a file's are sorted on reading):
+    given last-first they pulled the focus to the last key's value in every frame."""
+    _, camera, lens = scene
+    keys = [sequence.Keyframe(1.0, {"focus": (4.0,)}), sequence.Keyframe(0.0, {"focus": (2.0,)})]
+    specs = sequence.frame_specs(keys, 3, camera, lens, "linear")
+    assert [s.lens.focus_distance for s in specs] == pytest.approx([2.0, 3.0, 4.0])
+    for n_frames in (0, 2.5, "3", None):
+        with pytest.raises(DofsplatError, match="n_frames must be an integer >= 1"):
+            sequence.frame_specs(keys, n_frames, camera, lens)
+    with pytest.raises(DofsplatError, match="keyframes must be a list of Keyframe"):
+        sequence.frame_specs({"keyframes": []}, 3, camera, lens)
+
+
 def test_frame_specs_focus_pull_and_orbit(scene):
     surfels, camera, lens = scene
     keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "orbit": (0.0,)}),
