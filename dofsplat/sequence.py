@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, ThinLens
+from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
 from .frame import RenderSettings
 from .surfels import Surfels
@@ -87,7 +87,7 @@ class FrameSpec:
 
     index: int
     camera: Camera
-    lens: ThinLens | None
+    lens: ThinLens | EyeLens | None
 
 
 def keyframes_from_json(data, source: str = "keyframes") -> tuple[list[Keyframe], str]:
@@ -152,8 +152,8 @@ def interpolate(keys: list[Keyframe], name: str, t: float, easing: str = "smooth
     return have[-1].values[name]
 
 
-def frame_specs(keys: list[Keyframe], n_frames: int, camera: Camera, lens: ThinLens | None,
-                easing: str = "smooth", surfels: Surfels | None = None,
+def frame_specs(keys: list[Keyframe], n_frames: int, camera: Camera,
+                lens: ThinLens | EyeLens | None, easing: str = "smooth", surfels: Surfels | None = None,
                 settings: RenderSettings | None = None) -> list[FrameSpec]:
     """Each frame's camera and lens: the base ``camera`` and ``lens`` with the keyframes'
     values at t = k / (n_frames - 1). A ``focus_at`` pixel is focused on (a pinhole frame of
@@ -190,7 +190,7 @@ def frame_path(folder: Path, index: int, frame_format: str = "png") -> Path:
 
 
 def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: Camera,
-            lens: ThinLens | None = None, settings: RenderSettings | None = None, *,
+            lens: ThinLens | EyeLens | None = None, settings: RenderSettings | None = None, *,
             output=None, fps: float = 24.0, easing: str = "smooth",
             frame_format: str = "png", client=None, progress: bool = False):
     """Render a sequence; returns the ``n_frames`` frames, each an (H, W, 4) float32 linear
@@ -199,7 +199,8 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
 
     keyframes: ``Keyframe`` list (``keyframes_from_json``, or built directly, e.g.
     ``Keyframe(0.0, {"focus": (2.0,)})``; distances in world units, angles in degrees);
-    camera, lens: the base values the keyframes change (lens None: pinhole frames);
+    camera, lens: the base values the keyframes change (lens: a ThinLens, or an EyeLens,
+    whose pupil an aperture keyframe sets; None: pinhole frames);
     fps: the video's frames per second; easing: "smooth" or "linear" between keyframes;
     frame_format: png, npy or exr, for a folder; client: a ``dask.distributed.Client``
     (None: render here, frame after frame); progress: a tqdm bar of frames done and the
@@ -311,13 +312,16 @@ def _camera_at(keys, t, camera: Camera, easing) -> Camera:
                    frustum=None if changed else camera.frustum)
 
 
-def _lens_at(keys, t, lens: ThinLens | None, easing) -> ThinLens | None:
+def _lens_at(keys, t, lens: ThinLens | EyeLens | None, easing):
     focus = interpolate(keys, "focus", t, easing)
     aperture = interpolate(keys, "aperture", t, easing)
     if lens is None:
         return None
     if focus is None and aperture is None:
         return lens
+    if isinstance(lens, EyeLens):  # the eye's aperture is its pupil
+        return replace(lens, focus_distance=focus[0] if focus else lens.focus_distance,
+                       pupil_diameter=aperture[0] if aperture else lens.pupil_diameter)
     kw = {"focus_distance": focus[0] if focus else lens.focus_distance,
           "focal_length": lens.focal_length, "bokeh": lens.bokeh, "blades": lens.blades,
           "blade_rotation": lens.blade_rotation}

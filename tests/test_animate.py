@@ -81,6 +81,20 @@ def test_frame_specs_take_keyframes_in_any_order(scene):
         sequence.frame_specs({"keyframes": []}, 3, camera, lens)
 
 
+def test_frame_specs_with_the_eye_model(scene):
+    """An EyeLens (eq. 4) animates too: a focus keyframe moves its fixation, an aperture
+    keyframe its pupil (it failed with an AttributeError, looking for an f-number)."""
+    _, camera, _ = scene
+    eye = ds.EyeLens(focus_distance=2.0, screen_distance=0.5, pixels_per_unit=2000.0)
+    keys = [sequence.Keyframe(0.0, {"focus": (2.0,), "aperture": (0.002,)}),
+            sequence.Keyframe(1.0, {"focus": (4.0,), "aperture": (0.006,)})]
+    specs = sequence.frame_specs(keys, 3, camera, eye, "linear")
+    assert all(isinstance(s.lens, ds.EyeLens) for s in specs)
+    assert [s.lens.focus_distance for s in specs] == pytest.approx([2.0, 3.0, 4.0])
+    assert [s.lens.pupil_diameter for s in specs] == pytest.approx([0.002, 0.004, 0.006])
+    assert specs[1].lens.screen_distance == 0.5
+
+
 def test_frame_specs_focus_pull_and_orbit(scene):
     surfels, camera, lens = scene
     keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "orbit": (0.0,)}),
