@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
 from .shading import HEADLIGHT, Light
 from .splat.subaperture import (MAX_LENS_SAMPLES, ResidualLens, aperture_second_moment,
@@ -119,6 +119,28 @@ class RenderResult:
     @property
     def alpha(self) -> np.ndarray:
         return self.image[..., 3]
+
+
+def frame_arguments(caller: str, surfels, camera, lens, settings, hierarchy=None) -> RenderSettings:
+    """``settings``, or ``RenderSettings()`` for None, once what a frame is drawn from has
+    been checked: arguments swapped or a lens left out (``render(surfels, camera,
+    settings)``) are a DofsplatError naming the argument, not an AttributeError deep in a
+    backend. ``caller`` names the function, e.g. "render()"."""
+    if not isinstance(surfels, Surfels):
+        raise DofsplatError(f"{caller} needs a Surfels model")
+    expected = (("camera", camera, Camera, "a Camera"),
+                ("lens", lens, (ThinLens, EyeLens, type(None)), "a ThinLens, an EyeLens or None"),
+                ("settings", settings, (RenderSettings, type(None)), "a RenderSettings or None"))
+    for name, value, kind, text in expected:
+        if not isinstance(value, kind):
+            raise DofsplatError(f"{caller}: {name} must be {text}, got {type(value).__name__}")
+    if hierarchy is not None:
+        from .lod import Hierarchy
+
+        if not isinstance(hierarchy, Hierarchy):
+            raise DofsplatError(f"{caller}: hierarchy must be a dofsplat.lod.Hierarchy or None, "
+                                f"got {type(hierarchy).__name__}")
+    return settings if settings is not None else RenderSettings()
 
 
 # -- per-frame parameters, shared by the backends ----------------------------------------

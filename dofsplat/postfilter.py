@@ -40,7 +40,7 @@ import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
-from .frame import RenderResult, RenderSettings
+from .frame import RenderResult, RenderSettings, frame_arguments
 from .render import render
 from .surfels import Surfels
 
@@ -102,7 +102,7 @@ def render_postfilter(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens
     returns the pinhole image. The result's depth and weight are the pinhole render's;
     stats are the pinhole render's plus filter_ms, max_coc_px and method "postfilter".
     """
-    settings = settings or RenderSettings()
+    settings = frame_arguments("render_postfilter()", surfels, camera, lens, settings)
     # the sharp frame as the reference draws its samples (``sharp_visibility``)
     pinhole = render(surfels, camera, None,
                      dataclasses.replace(settings, dof=False, sharp_visibility=True))

@@ -46,7 +46,7 @@ import numpy as np
 from .camera import Camera, EyeLens, ThinLens, effective_diameter, lens_camera
 from .errors import DofsplatError
 from .backends.cpu import shade_surfels, warm_up
-from .frame import RenderResult, RenderSettings
+from .frame import RenderResult, RenderSettings, frame_arguments
 from .render import render
 from .surfels import Surfels
 
@@ -134,9 +134,7 @@ def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens 
             per sample), fragments (sum over samples), width, height, shade_ms, render_ms,
             total_ms
     """
-    if not isinstance(surfels, Surfels):
-        raise DofsplatError("render_reference() needs a Surfels model")
-    settings = settings or RenderSettings()
+    settings = frame_arguments("render_reference()", surfels, camera, lens, settings)
     warm_up()  # timings exclude JIT compilation, as render()'s do
     t_start = time.perf_counter()
     cameras = lens_cameras(camera, lens, samples, offsets)

@@ -12,14 +12,15 @@ they, and the CPU stages, are importable from here too.
 from __future__ import annotations
 
 import math
+import numbers
 
 from .backends.cpu import (plan_bands, project, rasterize, render_cpu, select,
                            shade_surfels, warm_up)
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
 from .frame import (LOD_PALETTE, RECONSTRUCTIONS, RenderResult, RenderSettings,
-                    aperture_shape, coc_coefficients, kernel_floor, lod_level_colors, lod_tree,
-                    merge_parameters)
+                    aperture_shape, coc_coefficients, frame_arguments, kernel_floor,
+                    lod_level_colors, lod_tree, merge_parameters)
 from .surfels import Surfels
 
 __all__ = [
@@ -41,9 +42,7 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
     hierarchy: the model's ``dofsplat.lod.Hierarchy`` when ``settings.lod``; built on first
                use and kept on the ``Surfels`` object if not given
     """
-    settings = settings or RenderSettings()
-    if not isinstance(surfels, Surfels):
-        raise DofsplatError("render() needs a Surfels model")
+    settings = frame_arguments("render()", surfels, camera, lens, settings, hierarchy)
     from .backends import resolve_device
 
     if resolve_device(settings.device) == "cuda":
@@ -56,7 +55,10 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
 def focus_distance_at(surfels: Surfels, camera: Camera, x: float, y: float,
                       settings: RenderSettings | None = None) -> float:
     """Depth of the surface seen at pixel position (x, y) in a pinhole render: for autofocus."""
-    settings = settings or RenderSettings()
+    settings = frame_arguments("focus_distance_at()", surfels, camera, None, settings)
+    if not all(isinstance(v, numbers.Real) for v in (x, y)):
+        raise DofsplatError(f"focus_distance_at(): x and y must be numbers (a pixel position), "
+                            f"got {x!r}, {y!r}")
     if not (0 <= x < camera.width and 0 <= y < camera.height):
         raise DofsplatError(f"focus pixel ({x:g}, {y:g}) lies outside the {camera.width}x{camera.height} image")
     pinhole = render(surfels, camera, None, settings)

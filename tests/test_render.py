@@ -326,6 +326,35 @@ def test_focus_distance_at_reads_the_visible_surface():
         ds.focus_distance_at(s, cam, 64, 3)
 
 
+def test_arguments_of_the_wrong_kind_are_named():
+    """A lens left out (render(surfels, camera, settings)), arguments swapped or a dict for
+    the settings: a DofsplatError naming the argument, before anything renders (they were
+    AttributeErrors from inside the backend)."""
+    from dofsplat.postfilter import render_postfilter
+
+    s = grid_surfels(n=4, spacing=0.25)
+    cam = front_camera(16, 16, distance=2.0)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.1)
+    for call, message in [
+            (lambda: ds.render(s, cam, ds.RenderSettings()),
+             r"render\(\): lens must be a ThinLens, an EyeLens or None, got RenderSettings"),
+            (lambda: ds.render(s, lens, cam), r"render\(\): camera must be a Camera, got ThinLens"),
+            (lambda: ds.render(s, cam, lens, {"cutoff": 2.0}),
+             r"render\(\): settings must be a RenderSettings or None, got dict"),
+            (lambda: ds.render(s, cam, lens, hierarchy="tree.npz"),
+             r"render\(\): hierarchy must be a dofsplat\.lod\.Hierarchy or None, got str"),
+            (lambda: ds.render_reference(s, cam, lens, {}, samples=2),
+             r"render_reference\(\): settings must be a RenderSettings or None, got dict"),
+            (lambda: render_postfilter(s, None, lens),
+             r"render_postfilter\(\): camera must be a Camera, got NoneType"),
+            (lambda: ds.focus_distance_at(s, None, 8, 8),
+             r"focus_distance_at\(\): camera must be a Camera, got NoneType"),
+            (lambda: ds.focus_distance_at(s, cam, "8", 8),
+             r"focus_distance_at\(\): x and y must be numbers")]:
+        with pytest.raises(ds.DofsplatError, match=message):
+            call()
+
+
 def test_culling_behind_camera_and_back_faces():
     s = ds.Surfels(positions=[[0, 0, 0], [0, 0, 3], [0.2, 0, 0]],
                    normals=[[0, 0, 1], [0, 0, 1], [0, 0, -1]], radius=[0.05] * 3,
