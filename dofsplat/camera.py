@@ -24,7 +24,8 @@ C_r(U) = K |1/U - 1/P|.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import numbers
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,7 +52,10 @@ class Camera:
 
     def __post_init__(self):
         for name in ("eye", "target", "up"):
-            v = np.asarray(getattr(self, name), dtype=np.float64)
+            try:
+                v = np.asarray(getattr(self, name), dtype=np.float64)
+            except (TypeError, ValueError):
+                v = np.full(1, np.nan)  # not numbers: the message below
             if v.shape != (3,) or not np.all(np.isfinite(v)):
                 raise DofsplatError(f"camera {name} must be three finite numbers, got {getattr(self, name)}")
             object.__setattr__(self, name, tuple(float(x) for x in v))
@@ -68,8 +72,8 @@ class Camera:
         if np.linalg.norm(np.cross(fwd, self.up)) <= 1e-9 * np.linalg.norm(fwd) * np.linalg.norm(self.up):
             raise DofsplatError("camera up vector is parallel to the view direction (or zero)")
         if self.frustum is not None:
-            f = tuple(float(x) for x in self.frustum)
-            if len(f) != 5 or not all(math.isfinite(x) for x in f):
+            f = self.frustum if isinstance(self.frustum, (tuple, list, np.ndarray)) else ()
+            if len(f) != 5 or not all(isinstance(x, numbers.Real) and math.isfinite(x) for x in f):
                 raise DofsplatError("frustum must be five finite numbers L R B T N")
             left, right, bottom, top, near = f
             if not (right > left and top > bottom and near > 0):
@@ -79,13 +83,15 @@ class Camera:
                 raise DofsplatError(
                     f"frustum aspect (R-L)/(T-B) = {(right - left) / (top - bottom):.4f} differs from "
                     f"the image aspect W/H = {self.width / self.height:.4f} (pixels must be square)")
-            object.__setattr__(self, "frustum", f)
+            object.__setattr__(self, "frustum", tuple(float(x) for x in f))
             object.__setattr__(self, "fov_y", None)
         else:
-            if self.fov_y is None or not (0.0 < float(self.fov_y) < 180.0):
+            if self.fov_y is None or not (0.0 < _real("fov_y", self.fov_y) < 180.0):
                 raise DofsplatError(f"field of view must be in (0, 180) degrees, got {self.fov_y}")
-            if not (math.isfinite(self.near) and self.near > 0):
+            if not (math.isfinite(_real("near", self.near)) and self.near > 0):
                 raise DofsplatError(f"near plane must be > 0, got {self.near}")
+            object.__setattr__(self, "fov_y", float(self.fov_y))
+            object.__setattr__(self, "near", float(self.near))
 
     # -- transforms -------------------------------------------------------------------
     def camera_from_world(self) -> np.ndarray:
@@ -180,7 +186,7 @@ class ThinLens:
         _check_aperture_shape(self)
         p = _positive("focus distance", self.focus_distance)
         if self.aperture is not None:
-            a = float(self.aperture)
+            a = _real("aperture", self.aperture)
             if not math.isfinite(a) or a < 0:
                 raise DofsplatError(f"aperture must be >= 0, got {self.aperture}")
             if self.f_number is not None:
@@ -235,7 +241,7 @@ class EyeLens:
         _positive("screen distance", self.screen_distance)
         _positive("screen resolution", self.pixels_per_unit)
         _positive("retina distance", self.retina_distance)
-        a = float(self.pupil_diameter)
+        a = _real("pupil_diameter", self.pupil_diameter)
         if not math.isfinite(a) or a < 0:
             raise DofsplatError(f"pupil diameter must be >= 0, got {a}")
 
@@ -270,7 +276,7 @@ def _check_aperture_shape(lens) -> None:
         raise DofsplatError(f"blades must be 0 (round) or 5 to {MAX_BLADES}, got {blades!r}")
     if blades and lens.bokeh != "disc":
         raise DofsplatError("blades shape the aperture's image: they need bokeh='disc'")
-    if not math.isfinite(float(lens.blade_rotation)):
+    if not math.isfinite(_real("blade_rotation", lens.blade_rotation)):
         raise DofsplatError(f"blade rotation must be a finite angle, got {lens.blade_rotation}")
 
 
@@ -309,13 +315,14 @@ def photographic(eye, target, up=(0.0, 1.0, 0.0), *, width=512, height=512,
     field of view is that of a lens focused at P (focus breathing), and the CoC in pixels
     equals the CoC on the sensor times W / sensor width.
     """
+    pinhole = Camera(eye=eye, target=target, up=up, width=width, height=height)  # checks them
     _positive("focal length", focal_length_mm)
     _positive("sensor width", sensor_width_mm)
     _positive("scene unit", unit_m)
     f = focal_length_mm / 1000.0 / unit_m
     s = sensor_width_mm / 1000.0 / unit_m
     if focus_m is None:
-        p = float(np.linalg.norm(np.subtract(target, eye)))
+        p = float(np.linalg.norm(np.subtract(pinhole.target, pinhole.eye)))
     else:
         p = _positive("focus distance", focus_m) / unit_m
     lens = ThinLens(focus_distance=p, focal_length=f, f_number=f_number, bokeh=bokeh,
@@ -324,16 +331,19 @@ def photographic(eye, target, up=(0.0, 1.0, 0.0), *, width=512, height=512,
     near = f  # any N works; keep the frustum in camera units
     right = near * (s / 2) / v_p
     top = right * height / width
-    cam = Camera(eye=eye, target=target, up=up, width=width, height=height,
-                 frustum=(-right, right, -top, top, near))
-    return cam, lens
+    return replace(pinhole, frustum=(-right, right, -top, top, near)), lens
+
+
+def _real(name, v) -> float:
+    """v as a float; a DofsplatError naming it when it is not a number (a string "40"
+    passed float() here and failed in the render)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise DofsplatError(f"{name} must be a number, got {v!r}")
+    return float(v)
 
 
 def _positive(name, v) -> float:
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        raise DofsplatError(f"{name} must be a number, got {v!r}") from None
+    v = _real(name, v)
     if not math.isfinite(v) or v <= 0:
         raise DofsplatError(f"{name} must be > 0, got {v:g}")
     return v

@@ -88,6 +88,10 @@ def test_projection_conventions():
     (dict(focus_distance=1, aperture=-0.1), "aperture"),
     (dict(focus_distance=1), "needs an aperture"),
     (dict(focus_distance=1, aperture=0.1, f_number=2, focal_length=0.05), "either"),
+    # not numbers: a string "3" passed float() and failed in the render
+    (dict(focus_distance="3", aperture=0.1), "focus distance must be a number, got '3'"),
+    (dict(focus_distance=1, aperture="0.1"), "aperture must be a number, got '0.1'"),
+    (dict(focus_distance=1, aperture=0.1, blade_rotation=None), "blade_rotation must be a number"),
 ])
 def test_lens_rejects_impossible_values(kwargs, match):
     with pytest.raises(ds.DofsplatError, match=match):
@@ -100,9 +104,22 @@ def test_lens_rejects_impossible_values(kwargs, match):
     (dict(eye=(0, 0, 0)), "coincide"), (dict(up=(0, 0, 1)), "parallel"),
     (dict(frustum=(1, -1, -1, 1, 1)), "L < R"), (dict(frustum=(-2, 2, -1, 1, 1)), "aspect"),
     (dict(eye=(0, float("nan"), 1)), "finite"),
+    # not numbers: fov_y "40" was accepted and failed in the render
+    (dict(fov_y="40"), "fov_y must be a number, got '40'"),
+    (dict(near=None), "near must be a number"),
+    (dict(frustum="LRBTN"), "five finite numbers"), (dict(eye="abc"), "eye must be three finite"),
 ])
 def test_camera_rejects_impossible_values(kwargs, match):
     args = dict(eye=(0, 0, 1), target=(0, 0, 0), width=64, height=64)
     args.update(kwargs)
     with pytest.raises(ds.DofsplatError, match=match):
         ds.Camera(**args)
+
+
+def test_photographic_checks_the_camera_first():
+    """photographic() with a zero width was a ZeroDivisionError, an eye of the wrong kind a
+    numpy UFuncTypeError: now the Camera's own messages."""
+    with pytest.raises(ds.DofsplatError, match="image size must be positive, got 0x512"):
+        photographic((0, 0, 3), (0, 0, 0), width=0)
+    with pytest.raises(ds.DofsplatError, match="camera eye must be three finite numbers"):
+        photographic("abc", (0, 0, 0))
