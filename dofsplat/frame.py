@@ -8,6 +8,7 @@ frame to a backend; nothing here imports one.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from dataclasses import dataclass, field
 
@@ -52,6 +53,15 @@ class RenderSettings:
     sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); 1.1-1.5 x a pinhole frame's time (bench/profile.py --sharp-visibility); the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 
     def __post_init__(self):
+        for name in ("cutoff", "z_thickness", "lod_pixel_threshold", "lod_blur_fraction",
+                     "lod_color_tolerance", "max_tile_pairs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise DofsplatError(f"{name} must be a number, got {value!r}")
+        if not isinstance(self.lights, (tuple, list)) or \
+                not all(isinstance(light, Light) for light in self.lights):
+            raise DofsplatError(f"lights must be a tuple of Light, got {self.lights!r}")
+        object.__setattr__(self, "lights", tuple(self.lights))
         if not (math.isfinite(self.cutoff) and self.cutoff > 0):
             raise DofsplatError(f"cutoff must be > 0, got {self.cutoff}")
         if self.cutoff > 30:

@@ -355,6 +355,21 @@ def test_arguments_of_the_wrong_kind_are_named():
             call()
 
 
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(cutoff="2.5"), "cutoff must be a number, got '2.5'"),
+    (dict(lod_color_tolerance=None), "lod_color_tolerance must be a number, got None"),
+    (dict(max_tile_pairs="many"), "max_tile_pairs must be a number"),
+    (dict(lights=ds.HEADLIGHT), "lights must be a tuple of Light"),
+    (dict(lights=None), "lights must be a tuple of Light, got None"),
+])
+def test_settings_of_the_wrong_kind_are_named(kwargs, message):
+    """RenderSettings' numbers and lights of the wrong kind: a DofsplatError naming the
+    field (a TypeError from a comparison, or from the shading in the render, before)."""
+    with pytest.raises(ds.DofsplatError, match=message):
+        ds.RenderSettings(**kwargs)
+    assert ds.RenderSettings(lights=[ds.HEADLIGHT]).lights == (ds.HEADLIGHT,)
+
+
 def test_culling_behind_camera_and_back_faces():
     s = ds.Surfels(positions=[[0, 0, 0], [0, 0, 3], [0.2, 0, 0]],
                    normals=[[0, 0, 1], [0, 0, 1], [0, 0, -1]], radius=[0.05] * 3,
