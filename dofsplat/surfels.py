@@ -71,19 +71,21 @@ class Surfels:
     material: Material = field(default_factory=Material)
 
     def __post_init__(self):
+        if not isinstance(self.material, Material):
+            raise DofsplatError(f"material must be a Material, got {type(self.material).__name__}")
         n = _rows(self.positions, 3, "positions")
-        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
-        self.normals = np.ascontiguousarray(self.normals, dtype=np.float32)
+        self.positions = _floats(self.positions, "positions")
+        self.normals = _floats(self.normals, "normals")
         _check_shape(self.normals, (n, 3), "normals")
         self.radius = _column(self.radius, n, "radius")
-        self.colors = np.ascontiguousarray(self.colors, dtype=np.float32)
+        self.colors = _floats(self.colors, "colors")
         _check_shape(self.colors, (n, 3), "colors")
         self.opacity = (np.ones(n, np.float32) if self.opacity is None
                         else _column(self.opacity, n, "opacity"))
         if (self.tangent is None) != (self.radius_v is None):
             raise DofsplatError("elliptical surfels need both 'tangent' and 'radius_v'")
         if self.tangent is not None:
-            self.tangent = np.ascontiguousarray(self.tangent, dtype=np.float32)
+            self.tangent = _floats(self.tangent, "tangent")
             _check_shape(self.tangent, (n, 3), "tangent")
             self.radius_v = _column(self.radius_v, n, "radius_v")
         if self.weight is not None:
@@ -148,7 +150,8 @@ class Surfels:
         arrays = {"positions": positions, "normals": normals, "radius": radius,
                   "colors": colors, "opacity": opacity, "tangent": tangent,
                   "radius_v": radius_v, "weight": weight}
-        arrays = {k: (None if v is None else np.asarray(v, dtype=np.float32))
+        arrays = {k: (None if v is None else _floats(v, k)) for k, v in arrays.items()}
+        arrays = {k: (np.full(n, v) if v is not None and v.ndim == 0 else v)  # as Surfels does
                   for k, v in arrays.items()}
         keep = np.ones(n, bool)
         for k, a in arrays.items():
@@ -235,9 +238,20 @@ def _check_shape(a, shape, name):
         raise DofsplatError(f"{name} must have shape {shape}, got {a.shape}")
 
 
+def _floats(a, name) -> np.ndarray:
+    """``a`` as a C-contiguous float32 array (a scalar stays 0-d, as ascontiguousarray
+    would not keep it); a DofsplatError naming it when it is not numbers."""
+    try:
+        a = np.asarray(a, dtype=np.float32)
+    except (TypeError, ValueError):
+        got = repr(a) if isinstance(a, str) else type(a).__name__
+        raise DofsplatError(f"{name} must be numbers, got {got[:60]}") from None
+    return a if a.ndim == 0 else np.ascontiguousarray(a)
+
+
 def _column(a, n, name) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    if a.ndim == 0:
+    a = _floats(a, name)
+    if a.ndim == 0:  # one value for every surfel
         a = np.full(n, a, np.float32)
     if a.shape != (n,):
         raise DofsplatError(f"{name} must have shape ({n},), got {a.shape}")

@@ -156,6 +156,23 @@ def test_ply_zero_normal_and_bad_radius_raise_with_count(tmp_path):
         load(path)
 
 
+def test_surfels_take_one_value_for_every_surfel_and_name_what_is_not_numbers():
+    """A scalar radius, opacity or weight is every surfel's (Surfels meant to broadcast it,
+    but refused it as "shape (3,), got (1,)"; from_arrays failed with an IndexError); an
+    array of strings, or a material that is not a Material, is named."""
+    positions, normals = np.zeros((3, 3)), np.tile([0.0, 0.0, 1.0], (3, 1))
+    s = Surfels(positions, normals, radius=0.1, colors=np.ones((3, 3)), opacity=0.5)
+    np.testing.assert_array_equal(s.radius, np.full(3, 0.1, np.float32))
+    np.testing.assert_array_equal(s.opacity, np.full(3, 0.5, np.float32))
+    s = Surfels.from_arrays(positions, normals, 0.1, np.ones((3, 3)), weight=1.0)
+    np.testing.assert_array_equal(s.radius, np.full(3, 0.1, np.float32))
+    np.testing.assert_array_equal(s.weight, np.ones(3, np.float32))
+    with pytest.raises(DofsplatError, match="colors must be numbers, got 'red'"):
+        Surfels(positions, normals, radius=0.1, colors="red")
+    with pytest.raises(DofsplatError, match="material must be a Material, got str"):
+        Surfels(positions, normals, radius=0.1, colors=np.ones((3, 3)), material="shiny")
+
+
 @pytest.mark.parametrize("suffix, binary", [(".ply", True), (".ply", False),
                                             (".ply.gz", True)])
 def test_ply_truncated_file(tmp_path, suffix, binary):
