@@ -150,6 +150,9 @@ def test_cli_compare_png_against_npy(tmp_path, capsys):
     # the file named (the message had no name until 2026-11-27)
     (lambda p: np.save(p, np.full((48, 64, 4), np.nan, np.float32)), "d.png",
      "other.npy: 3,072 pixels with NaN or inf"),
+    # an array of strings was a ValueError's traceback, exit status 1
+    (lambda p: np.save(p, np.full((48, 64, 4), "a")), "d.png",
+     "other.npy: expected an array of numbers, got dtype <U1"),
 ])
 def test_cli_compare_mistakes(two_images, tmp_path, capsys, make_b, diff_name, message):
     pa, _ = two_images

@@ -335,6 +335,8 @@ def _read_png(path: Path) -> np.ndarray:
 
 def _read_npy(path: Path) -> np.ndarray:
     image = np.load(path, allow_pickle=False)
+    if image.dtype.kind not in "biuf":  # strings, complex, dates: no pixel values
+        raise DofsplatError(f"{path}: expected an array of numbers, got dtype {image.dtype}")
     if image.ndim not in (2, 3):
         raise DofsplatError(f"{path}: expected an (H, W) or (H, W, C) array, "
                             f"got shape {image.shape}")
