@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import numbers
 import os
 import shutil
 import threading
@@ -212,7 +213,8 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
     if frame_format not in FRAME_FORMATS:
         raise DofsplatError(f"frame_format must be one of {', '.join(FRAME_FORMATS)}, got "
                             f"{frame_format!r}")
-    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+    if isinstance(fps, bool) or not (isinstance(fps, numbers.Real) and math.isfinite(fps)
+                                     and fps > 0):
         raise DofsplatError(f"fps must be a positive number, got {fps!r}")
     settings = settings or RenderSettings()
     specs = frame_specs(keyframes, n_frames, camera, lens, easing, surfels, settings)

@@ -95,6 +95,16 @@ def test_frame_specs_with_the_eye_model(scene):
     assert specs[1].lens.screen_distance == 0.5
 
 
+def test_fps_is_any_real_number(scene):
+    """numpy's numbers are numbers (np.float32(24) was refused as not one); a bool is not."""
+    surfels, camera, lens = scene
+    keys = [sequence.Keyframe(0.0, {"focus": 2.0})]
+    assert len(sequence.animate(surfels, keys, 1, camera, lens, fps=np.float32(24))) == 1
+    for fps in (True, 0, float("nan"), "24"):
+        with pytest.raises(DofsplatError, match="fps must be a positive number"):
+            sequence.animate(surfels, keys, 1, camera, lens, fps=fps)
+
+
 def test_frame_specs_focus_pull_and_orbit(scene):
     surfels, camera, lens = scene
     keys = [sequence.Keyframe(0.0, {"focus": (1.5,), "orbit": (0.0,)}),

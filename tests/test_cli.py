@@ -650,6 +650,16 @@ def test_summary_counts_say_what_they_mean():
     assert _count(6_200_000_000) == "6.2G"
 
 
+def test_the_summary_counts_lens_samples_in_the_singular_too():
+    from dofsplat.cli.framing import summary
+
+    stats = {"width": 8, "height": 6, "points_in": 10, "splats_rendered": 9, "fragments": 80,
+             "total_ms": 5.0}
+    assert "9 splats, 1 lens sample, 80 fragments" in summary(["r.png"], {**stats, "samples": 1})
+    assert "9 splats, 2 lens samples, 80 fragments" in summary(["r.png"],
+                                                               {**stats, "samples": 2})
+
+
 def test_the_neighbour_bounds_are_the_loaders():
     """The command line writes out prep.pointcloud's bounds on K (importing them would load
     numba for every command); the two must agree, and the message name them."""

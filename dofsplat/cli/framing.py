@@ -309,7 +309,8 @@ def summary(paths: list[Path], stats: dict) -> str:
     """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``,
     and for a model file how long loading took: ``...; model loaded in 6.1 s`` or
     ``...; model from the cache in 0.02 s``."""
-    samples = f"{stats['samples']} lens samples, " if "samples" in stats else ""
+    samples = (f"{stats['samples']} lens sample{'s' * (stats['samples'] != 1)}, "
+               if "samples" in stats else "")
     load = ""
     if "load_ms" in stats:
         how = "from the cache in" if stats["load_from_cache"] else "loaded in"
