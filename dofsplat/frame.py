@@ -139,7 +139,9 @@ def frame_arguments(caller: str, surfels, camera, lens, settings, hierarchy=None
     if not isinstance(surfels, Surfels):
         raise DofsplatError(f"{caller} needs a Surfels model")
     expected = (("camera", camera, Camera, "a Camera"),
-                ("lens", lens, (ThinLens, EyeLens, type(None)), "a ThinLens, an EyeLens or None"),
+                # (a ResidualLens too: a part of the lens, frame.lens_parts, drawn on its own)
+                ("lens", lens, (ThinLens, EyeLens, ResidualLens, type(None)),
+                 "a ThinLens, an EyeLens or None"),
                 ("settings", settings, (RenderSettings, type(None)), "a RenderSettings or None"))
     for name, value, kind, text in expected:
         if not isinstance(value, kind):
