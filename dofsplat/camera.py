@@ -275,7 +275,8 @@ def _check_aperture_shape(lens) -> None:
             or not (blades == 0 or 5 <= blades <= MAX_BLADES):
         raise DofsplatError(f"blades must be 0 (round) or 5 to {MAX_BLADES}, got {blades!r}")
     if blades and lens.bokeh != "disc":
-        raise DofsplatError("blades shape the aperture's image: they need bokeh='disc'")
+        raise DofsplatError("blades shape the aperture's image: they need the disc bokeh "
+                            "(bokeh='disc'; --bokeh disc on the command line)")
     if not math.isfinite(_real("blade_rotation", lens.blade_rotation)):
         raise DofsplatError(f"blade rotation must be a finite angle, got {lens.blade_rotation}")
 

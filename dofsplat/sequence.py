@@ -97,6 +97,10 @@ def keyframes_from_json(data, source: str = "keyframes") -> tuple[list[Keyframe]
     (or the list alone). DofsplatError naming the keyframe and field for a bad value."""
     easing = "smooth"
     if isinstance(data, dict):
+        unknown = sorted(set(data) - {"easing", "keyframes"}, key=str)
+        if unknown:  # a misspelt "easing" would be dropped without a word
+            raise DofsplatError(f"{source}: unknown key {unknown[0]!r} (a keyframe file "
+                                "holds \"easing\" and \"keyframes\")")
         easing = data.get("easing", "smooth")
         if easing not in EASINGS:
             raise DofsplatError(f"{source}: easing must be one of {', '.join(EASINGS)}, "

@@ -260,12 +260,19 @@ def test_the_readme_keyframes_are_docs_moves_json():
      "give it or --focus-from"),
     (["--frames", "3", "--depth", "d.npy"], "describe one frame"),
     (["--frames", "3", "--scheduler", "no-port"], "cannot reach the Dask scheduler"),
+    (["--frames", "3", "--scheduler", ""], "--scheduler needs the Dask scheduler's address"),
+    (["--frames", "3", "--keyframes", "FOLDER"], "FOLDER: a folder, not a keyframe file"),
+    # a misspelt "easing" was dropped without a word
+    (["--frames", "3", "--keyframes", "TYPO"], "TYPO: unknown key 'easeing'"),
     (["--frames", "3", "--frame-format", "exr"], "is for a folder of frames"),
 ])
 def test_mistakes_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch, extra, message):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "KEYS").write_text(json.dumps([{"t": 0, "focus": 2}, {"focus": 3}]))
     (tmp_path / "BADFIELD").write_text(json.dumps({"keyframes": [{"t": 0, "zoom": 2}]}))
+    (tmp_path / "TYPO").write_text(json.dumps({"easeing": "linear",
+                                               "keyframes": [{"t": 0, "focus": 2}]}))
+    (tmp_path / "FOLDER").mkdir()
     before = sorted(p.name for p in tmp_path.iterdir())
     argv = ["animate", "--demo", "--size", f"{W}x{H}"]
     argv += extra if "-o" in extra else extra + ["-o", "seq.mp4"]

@@ -125,6 +125,12 @@ def test_bad_aperture_shapes_are_errors(bad):
         ds.ThinLens(focus_distance=1.0, aperture=0.1, **bad)
 
 
+def test_blades_without_the_disc_name_both_spellings():
+    """The lens serves the API and the command line: its message gives both words."""
+    with pytest.raises(ds.DofsplatError, match=r"bokeh='disc'; --bokeh disc"):
+        ds.ThinLens(focus_distance=1.0, aperture=0.1, blades=6, bokeh="gaussian")
+
+
 @pytest.mark.parametrize("focus, aperture", [(1.0, 0.4), (4.0, 0.8)])
 def test_polygon_turns_over_before_the_focal_plane(focus, aperture):
     """A 5-blade aperture (not symmetric under a half turn) against the reference's 400

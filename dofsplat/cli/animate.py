@@ -156,12 +156,17 @@ def _check(args) -> None:
     if args.focus_at is not None and args.focus_from is not None:
         raise DofsplatError("--focus-at focuses the first frame: give it or --focus-from, "
                             "not both")
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise DofsplatError("--scheduler needs the Dask scheduler's address, e.g. "
+                            "tcp://host:8786 (without it, frames render in this process)")
     if args.workers and args.scheduler:
         raise DofsplatError("give --workers (a local cluster) or --scheduler (an existing "
                             "one), not both")
     if args.no_dof and (args.focus_from is not None or args.aperture_from is not None):
         raise DofsplatError("--no-dof has no lens to change: drop --focus-from/--aperture-from")
     if args.keyframes is not None and not Path(args.keyframes).is_file():
+        if Path(args.keyframes).is_dir():
+            raise DofsplatError(f"{args.keyframes}: a folder, not a keyframe file")
         raise DofsplatError(f"no such keyframe file: {args.keyframes}")
     if args.depth is not None or args.stats is not None:
         raise DofsplatError("--depth and --stats describe one frame: use 'dofsplat render' "
