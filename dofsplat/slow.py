@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from .camera import Camera
-from .splat.ewa import BOX_SLACK, BOX_SLACK_REL, SMALL_APERTURE
+from .splat.ewa import BOX_SLACK, BOX_SLACK_REL, MAX_SPLAT_VARIANCE, SMALL_APERTURE
 from .frame import RenderSettings, coc_coefficients
 from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
@@ -142,6 +142,10 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         if radius ** 2 < SMALL_APERTURE ** 2 * np.linalg.eigvalsh(W).min():
             W = W + radius ** 2 / 4 * np.eye(2)  # a small aperture: its moment-matched Gaussian
             radius = 0.0
+        F = J @ Vr @ J.T + Q + 1e-6 * np.eye(2)  # the unblurred disk
+        if not (np.trace(W) + radius ** 2 <= MAX_SPLAT_VARIANCE
+                and np.trace(F) <= MAX_SPLAT_VARIANCE):
+            continue  # too wide to store (ewa.MAX_SPLAT_VARIANCE)
         hx, hy = math.sqrt(2 * c * W[0, 0]), math.sqrt(2 * c * W[1, 1])
         if radius != 0:
             mix = radius ** 2 / (radius ** 2 + 0.5 * np.trace(W))
@@ -188,7 +192,6 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
         splats[k, COC] = coc_r
         splats[k, [X0, X1]] = x0, x1
         # the unblurred disk and the depth change per pixel across the tangent plane
-        F = J @ Vr @ J.T + Q + 1e-6 * np.eye(2)
         Fi = np.linalg.inv(F)
         splats[k, [F11, F12, F22]] = Fi[0, 0], Fi[0, 1], Fi[1, 1]
         splats[k, FLOOR] = floor

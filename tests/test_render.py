@@ -45,6 +45,28 @@ def test_grid_in_focus_has_unit_coverage_and_exact_colour():
     assert res.alpha[:4].max() == 0 and np.isinf(res.depth[:4]).all()
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's overflow in its area
+@pytest.mark.parametrize("aperture", [0.0, 0.1])
+def test_a_splat_too_wide_to_store_is_dropped_not_a_crash(aperture):
+    """A surfel of radius 1e30 before the camera (a damaged file): its conic underflowed
+    float32 and the front pass divided by zero (a segmentation fault in the command line).
+    It is dropped (ewa.MAX_SPLAT_VARIANCE), in the kernels and in their slow twin alike, and
+    the grid beside it renders as without it."""
+    grid = grid_surfels(16, 1.0 / 16)
+    huge = dataclasses.replace(grid_surfels(1, 1.0, z=0.1), radius=np.full(1, 1e30, np.float32))
+    cam = front_camera(48, 48)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=aperture) if aperture else None
+    st = ds.RenderSettings(lod=False)
+    both = concatenate([grid, huge])
+    fast = project(both, shade_surfels(both, cam, st), cam, lens, st)
+    slow = project_reference(both, shade_surfels(both, cam, st), cam, lens, st)
+    assert not fast[2][-1] and not slow[2][-1] and fast[2][:-1].all()
+    for lod in (False, True):
+        settings = dataclasses.replace(st, lod=lod)
+        alone = ds.render(grid, cam, lens, settings).image
+        np.testing.assert_array_equal(ds.render(both, cam, lens, settings).image, alone)
+
+
 def test_a_sharp_opaque_plane_hides_the_plane_behind_it():
     """The sum of a sharp plane's kernels ripples between its splats (the grid above: down
     to 0.978 inside); with min(1, w) as its opacity a second plane 0.1 behind it showed

@@ -274,6 +274,14 @@ def exponent(dx, dy, c11, c12, c22):
     return 0.5 * (c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy)
 
 
+# A splat whose kernel or unblurred disk has a variance above this (px^2: sigma 1e8 px,
+# 10^4 times the widest image) is dropped by ``project_surfel``: its conic, stored in
+# float32, would underflow, and the rasteriser and the front pass divide by its
+# determinant (a surfel radius of 1e30 a few units from the eye was a segmentation fault
+# in the command line). Such a splat would wash the whole image in one colour.
+MAX_SPLAT_VARIANCE = 1.0e16
+
+
 @shared_inline
 def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by, near,
                    coc_k, inv_focus, lod_cov, cutoff, z_margin, cull_backfaces, disc):
@@ -360,6 +368,10 @@ def project_surfel(p_world, n_world, t_world, ru, rv, area, view, ax, bx, ay, by
     # the unblurred disk (what a pinhole sees, without the prefilter: a far sub-pixel disk
     # must not claim pixels beyond its own surface): the basis and a node's own filter
     f11, f12, f22 = b11 - 1.0 + q11 + 1e-6, b12 + q12, b22 - 1.0 + q22 + 1e-6
+    if not (w11 + w22 + radius * radius <= MAX_SPLAT_VARIANCE
+            and f11 + f22 <= MAX_SPLAT_VARIANCE):
+        # a splat too wide to store (or NaN): dropped, as a culled one
+        return False, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, depth, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0
 
     # z-range in camera space, not enlarged by the blur (Section 6.4): the truncated leaf
     # basis reaches sqrt(2c) sigma in depth; a node adds the depth spread of its surfels
