@@ -181,6 +181,18 @@ class Surfels:
         """Axis-aligned bounding box (lo, hi) of the positions, world units."""
         return self.positions.min(axis=0), self.positions.max(axis=0)
 
+    def view_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``bounds``, widened by the largest disk radius where the box is smaller than
+        that disk (one surfel, or all at one point): the box a default camera frames. A lone
+        surfel's box is a point, and the camera framing it stood 3e-9 units from it."""
+        lo, hi = self.bounds()
+        r = float(np.max(self.radius))
+        if self.radius_v is not None:
+            r = max(r, float(np.max(self.radius_v)))
+        if 0.5 * float(np.linalg.norm(hi.astype(np.float64) - lo)) < r:  # (float32 overflows)
+            lo, hi = lo - r, hi + r
+        return lo, hi
+
 
 def concatenate(parts: list[Surfels]) -> Surfels:
     """Join several models into one (material of the first; weights default to 1)."""

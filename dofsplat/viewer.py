@@ -145,7 +145,7 @@ def view(surfels: Surfels, camera: Camera | None = None, lens: ThinLens | None =
         import viser
     except ImportError:
         raise DofsplatError("the viewer needs viser: pip install 'dofsplat[view]'") from None
-    lo, hi = surfels.bounds()
+    lo, hi = surfels.view_bounds()
     half_diagonal = 0.5 * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
     camera = camera or Camera.framing(lo, hi, 800, 600, 40.0)
     lens = lens or ThinLens(focus_distance=math.dist(camera.eye, camera.target),

@@ -501,6 +501,21 @@ def test_warnings_are_one_line(workdir, capsys):
     assert re.fullmatch(r"dofsplat: warning: .*dropped 1 of 2 surfels.*\n", err)
 
 
+def test_a_lone_surfel_is_framed_by_its_disk(workdir, capsys):
+    """A model of one surfel has a point for its box: the default camera stood 3e-9 units
+    from it (a splat too wide to draw, so an empty frame); it frames the disk now."""
+    from dofsplat.io import read_image, write_surfel_ply
+
+    write_surfel_ply(workdir / "one.ply", Surfels(positions=[[1, 2, 3]], normals=[[0, 0, 1]],
+                                                  radius=[0.1], colors=[[1, 1, 1]]))
+    status, _, err = run_main(["render", "one.ply", "-o", "one.npy", "--size", "16x16", "-q"],
+                              capsys)
+    assert status == 0 and err == ""
+    alpha = read_image(workdir / "one.npy")[..., 3]
+    # the disk in the middle (a lone splat's kernel, not a surface: about half covered)
+    assert alpha[8, 8] > 0.3 and alpha[0, 0] < 0.01
+
+
 def test_a_model_too_large_for_float32_is_one_line(workdir, capsys):
     """Coordinates near 1e30 overflow the frame's float32 arithmetic: the error names the
     coordinates (it said only "image has N pixels with NaN or inf values" until 2026-11-27),

@@ -66,7 +66,7 @@ def load_model(args):
 def model_view(args, surfels):
     """(camera, default focus distance, default lens diameter) of a model: a depth capture
     seen from its sensor, anything else framed whole; the user's camera options applied."""
-    lo, hi = surfels.bounds()
+    lo, hi = surfels.view_bounds()
     half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
     capture = getattr(surfels, "capture", None)
     placed = any(getattr(args, a) is not None for a in ("eye", "target", "up", "fov", "frustum"))
