@@ -676,12 +676,16 @@ def test_the_summary_counts_lens_samples_in_the_singular_too():
 
 
 def test_the_neighbour_bounds_are_the_loaders():
-    """The command line writes out prep.pointcloud's bounds on K (importing them would load
-    numba for every command); the two must agree, and the message name them."""
-    from dofsplat.cli.options import MAX_NEIGHBOURS, MIN_NEIGHBOURS, neighbour_count
+    """The command line writes out prep.pointcloud's bounds on K and prep.meshes' on the
+    sample count (importing them would load numba while parsing); they must agree, and the
+    message name them."""
+    from dofsplat.cli.options import (MAX_MESH_SAMPLES, MAX_NEIGHBOURS, MIN_NEIGHBOURS,
+                                      neighbour_count)
+    from dofsplat.prep.meshes import MAX_SAMPLES
     from dofsplat.prep.pointcloud import MAX_K, MIN_K
 
     assert (MIN_NEIGHBOURS, MAX_NEIGHBOURS) == (MIN_K, MAX_K)
+    assert MAX_MESH_SAMPLES == MAX_SAMPLES
     assert neighbour_count(str(MAX_K)) == MAX_K
     with pytest.raises(argparse.ArgumentTypeError, match="from 4 to 256 neighbours"):
         neighbour_count(str(MAX_K + 1))

@@ -196,10 +196,9 @@ def sample_count(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number or 'vertices', got "
                                          f"{text!r}") from None
-    from ..prep.meshes import MAX_SAMPLES  # numba with it: only when --points is given
-
-    if not 1 <= value <= MAX_SAMPLES:
-        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_SAMPLES:,}, got {text!r}")
+    if not 1 <= value <= MAX_MESH_SAMPLES:
+        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_MESH_SAMPLES:,}, got "
+                                         f"{text!r}")
     return value
 
 
@@ -460,9 +459,11 @@ def min_node_count(text: str) -> int:
     return m
 
 
-# prep.pointcloud's MIN_K and MAX_K, written out: importing it here would load numba and
-# scipy for every command line (tests/test_cli.py checks that they agree)
+# prep.pointcloud's MIN_K and MAX_K and prep.meshes' MAX_SAMPLES, written out: importing
+# them here would load numba and scipy while the arguments are parsed (tests/test_cli.py
+# checks that they agree)
 MIN_NEIGHBOURS, MAX_NEIGHBOURS = 4, 256
+MAX_MESH_SAMPLES = 50_000_000
 
 
 def neighbour_count(text: str) -> int:
