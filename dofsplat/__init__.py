@@ -4,6 +4,8 @@ An implementation of Krivanek & Zara, "Rendering Depth-of-Field with Surface Spl
 (2003). Importing the package is cheap: numba kernels compile on first render.
 """
 
+__version__ = "0.1.0"  # first: dofsplat.jit names its kernel cache after it
+
 from .camera import Camera, EyeLens, ThinLens, photographic
 from .errors import DofsplatError
 from .frame import RenderResult, RenderSettings
@@ -15,7 +17,6 @@ from .viewer import view
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels
 
-__version__ = "0.1.0"
 
 __all__ = [
     "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",

@@ -16,7 +16,7 @@ import contextlib
 import signal
 import threading
 
-import numba
+from .jit import numba
 
 PHI_INVERSE = 0.6180339887498949
 

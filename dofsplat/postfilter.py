@@ -35,7 +35,7 @@ import math
 import time
 import warnings
 
-import numba
+from .jit import numba
 import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens

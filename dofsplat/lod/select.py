@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from .hierarchy import (SMALL_NODE, V_COLOR_GRAD, attribute_rows, node_height, push_children,

@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..errors import DofsplatError

@@ -31,7 +31,7 @@ import math
 import sys
 from dataclasses import replace
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..errors import DofsplatError

@@ -47,7 +47,7 @@ import sys
 import warnings
 from dataclasses import replace
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..errors import DofsplatError

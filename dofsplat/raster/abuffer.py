@@ -22,7 +22,7 @@ not depend on the number of threads.
 
 import math
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..parallel import weyl_stride

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from .ewa import pixel_bbox, shared

@@ -12,7 +12,7 @@ y_px = -a_y Y/U + b_y with depth U = -Z in camera space.
 
 import math
 
-import numba
+from ..jit import numba
 
 # jitted on first use; cache=True keeps the machine code between processes
 shared = numba.njit(cache=True, nogil=True)

@@ -19,7 +19,7 @@ point sampling; docs/maths.md).
 
 import math
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..parallel import weyl_stride

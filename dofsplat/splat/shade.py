@@ -2,7 +2,7 @@
 
 import math
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..camera import Camera
