@@ -159,14 +159,23 @@ def frame_arguments(caller: str, surfels, camera, lens, settings, hierarchy=None
 
 
 def lod_tree(surfels: Surfels, hierarchy=None):
-    """The model's LOD ``Hierarchy``: ``hierarchy`` if given (checked), else built or cached."""
-    from .lod import hierarchy_for
+    """The model's LOD ``Hierarchy``: ``hierarchy`` if given, else built or kept
+    (``lod.hierarchy_for``). A given tree must carry the model's fingerprint (the hash of
+    its surfel arrays, ``lod.fingerprint``), else DofsplatError: another model's tree, even
+    one of as many surfels, draws that model's nodes. The model's hash is kept on it
+    between frames while its arrays are the same objects."""
+    from .lod import fingerprint, hierarchy_for
 
-    tree = hierarchy if hierarchy is not None else hierarchy_for(surfels)
-    if tree.n_surfels != len(surfels):
-        raise DofsplatError(f"the LOD hierarchy was built for {tree.n_surfels} surfels, "
+    if hierarchy is None:
+        return hierarchy_for(surfels)
+    if hierarchy.n_surfels != len(surfels):
+        raise DofsplatError(f"the LOD hierarchy was built for {hierarchy.n_surfels} surfels, "
                             f"the model has {len(surfels)}")
-    return tree
+    if hierarchy.fingerprint != fingerprint(surfels, cached=True):
+        raise DofsplatError(f"the LOD hierarchy was built for another model of as many "
+                            f"surfels ({len(surfels)}; its fingerprint differs): build it for "
+                            "this one (dofsplat.lod.build_hierarchy) or pass none")
+    return hierarchy
 
 
 def lod_level_colors(level: np.ndarray) -> np.ndarray:

@@ -17,9 +17,11 @@ scattered to every worker once, not shipped per task; each worker renders with
 cores / workers numba threads.
 
 Frames are written as they finish (atomically: a frame file is whole or absent), so an
-interrupted sequence into a folder resumes where it stopped; a video (.mp4, H.264 through
-PyAV, FFmpeg's bindings; or .gif through Pillow) is assembled at the end from those frames,
-in order, into a temporary file renamed into place.
+interrupted sequence into a folder resumes where it stopped: the folder records the
+model's content hash and the frames' cameras, lenses and settings, and a run of another
+model or other arguments into it is refused rather than mixed (``_claim``). A video
+(.mp4, H.264 through PyAV, FFmpeg's bindings; or .gif through Pillow) is assembled at the
+end from those frames, in order, into a temporary file renamed into place.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ EASINGS = ("smooth", "linear")
 FRAME_FORMATS = ("png", "npy", "exr")
 VIDEO_SUFFIXES = (".mp4", ".gif")
 MANIFEST = ".dofsplat-sequence.json"  # in a frame folder: which sequence its frames are
+MANIFEST_VERSION = 2  # 2: the model's whole content hash (1: its count and a sample)
 
 
 @dataclass(frozen=True)
@@ -210,7 +213,11 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
     frame_format: png, npy or exr, for a folder; client: a ``dask.distributed.Client``
     (None: render here, frame after frame); progress: a tqdm bar of frames done and the
     rate. Frames already in an output folder are kept, not rendered again (a video's
-    frames wait in a hidden folder beside it until it is assembled).
+    frames wait in a hidden folder beside it until it is assembled), when the folder holds
+    this sequence of this model: a folder of another model (any array or the material
+    changed: recoloured, new weights, radii, opacities) or of other cameras, lenses or
+    settings is refused with a DofsplatError naming it and what differs, its frames left
+    alone; so is a folder of frames no dofsplat sequence wrote (``_claim``).
     """
     if easing not in EASINGS:
         raise DofsplatError(f"easing must be one of {', '.join(EASINGS)}, got {easing!r}")
@@ -399,30 +406,68 @@ def _frame_lock():
 
 
 def _claim(folder: Path, specs, settings, surfels, frame_format) -> None:
-    """Mark ``folder`` as this sequence's (a hash of every frame's camera and lens, the
-    settings and the model); a folder marked by another sequence is refused, so a resumed
-    run never mixes frames of two sequences."""
+    """Mark ``folder`` as this sequence's, or refuse it, so that a resumed run never mixes
+    the frames of two sequences nor keeps the frames of a model since changed.
+
+    The manifest (MANIFEST) records two hashes: the model's content hash (every array and
+    the material, ``dofsplat.fingerprint``: recoloured, with new weights, radii or
+    opacities, it is another model) and the frames' (every frame's camera and lens, the
+    settings, the frame format). A folder whose manifest differs in either is refused, not
+    rendered over (as other arguments always were: no frame is deleted unasked): a
+    DofsplatError names the folder and what differs, and its frames are left alone (delete
+    them, or give another folder). So is a folder of frame files that
+    no dofsplat sequence wrote (``frame_*`` without a manifest), and one of frames beside
+    a damaged manifest; a damaged manifest beside no frames is written anew."""
     import hashlib
 
-    digest = hashlib.sha256(repr((specs, settings, frame_format, len(surfels))).encode())
-    sample = surfels.positions[:: max(1, len(surfels) // 4096)]  # (<= ~4096, 3)
-    digest.update(np.ascontiguousarray(sample).tobytes())
-    key = digest.hexdigest()[:20]
-    path = Path(folder) / MANIFEST
-    if path.exists():
-        try:
-            have = json.loads(path.read_text(encoding="utf-8")).get("sequence")
-        except (OSError, ValueError):
-            have = None
-        if have != key:
-            raise DofsplatError(f"{folder} holds the frames of another sequence (other "
-                                "arguments or model): give another folder, or delete it")
+    from .fingerprint import content_hash
+    from .io import atomic_write
+
+    folder = Path(folder)
+    mine = {"version": MANIFEST_VERSION, "model": content_hash(surfels),
+            "sequence": hashlib.blake2b(repr((specs, settings, frame_format)).encode(),
+                                        digest_size=16).hexdigest(),
+            "frames": len(specs)}
+    path = folder / MANIFEST
+    have = _read_manifest(path)
+    if isinstance(have, dict):
+        if have.get("version") != MANIFEST_VERSION:
+            raise DofsplatError(f"{folder} holds the frames of a sequence that an older "
+                                "dofsplat wrote, which did not record the whole model: give "
+                                "another folder, or delete it")
+        differ = [text for key, text in (("model", "another model: its arrays or material "
+                                                   "differ"),
+                                         ("sequence", "other cameras, lenses or settings"))
+                  if have.get(key) != mine[key]]
+        if differ:
+            raise DofsplatError(f"{folder} holds the frames of another sequence "
+                                f"({'; '.join(differ)}): give another folder, or delete it")
         return
-    if any(Path(folder).glob("frame_*")):
-        raise DofsplatError(f"{folder} already holds frame files that no dofsplat sequence "
-                            "wrote: give another folder")
-    path.write_text(json.dumps({"sequence": key, "frames": len(specs)}) + "\n",
-                    encoding="utf-8")
+    if any(folder.glob("frame_*")):
+        if have is None:
+            raise DofsplatError(f"{folder} already holds frame files that no dofsplat "
+                                "sequence wrote: give another folder")
+        raise DofsplatError(f"{folder} holds frames whose record {MANIFEST} is damaged "
+                            f"({have}), so which sequence they are is unknown: give another "
+                            "folder, or delete it")
+
+    def write(tmp: str) -> None:
+        Path(tmp).write_text(json.dumps(mine) + "\n", encoding="utf-8")
+
+    atomic_write(path, write)
+
+
+def _read_manifest(path: Path):
+    """A folder's manifest: its dict, None where there is none, or why it is damaged (str)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        return f"not readable JSON: {e}"
+    if not isinstance(data, dict) or not isinstance(data.get("sequence"), str):
+        return "not a dofsplat sequence record"
+    return data
 
 
 def _write_frame(folder: Path, index: int, image: np.ndarray, frame_format: str) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ import dofsplat as ds
 from dofsplat import cli, sequence
 from dofsplat.demo import demo_scene
 from dofsplat.errors import DofsplatError
+
+from conftest import grid_surfels
 
 W, H = 64, 48
 
@@ -316,3 +319,163 @@ def test_cli_on_an_existing_scheduler(tmp_path, capsys):
     status, err = run(argv + ["-o", tmp_path / "x", "--scheduler", "tcp://127.0.0.1:9"],
                       capsys)
     assert status == 2 and "cannot reach the Dask scheduler" in err
+
+
+def _edited(surfels, edit):
+    """A copy of the model with one thing changed, as a user changes it between two runs."""
+    from dataclasses import replace
+
+    n = len(surfels)
+    if edit == "recoloured":
+        colors = surfels.colors.copy()
+        colors[n // 2] = (0.9, 0.1, 0.1)  # one surfel: the old sample of positions saw none
+        return replace(surfels, colors=colors)
+    if edit == "reweighted":  # what --normalise gives
+        weight = np.ones(n, np.float32) if surfels.weight is None else surfels.weight.copy()
+        weight[::7] *= 1.05
+        return replace(surfels, weight=weight)
+    if edit == "radii":
+        return replace(surfels, radius=surfels.radius * np.float32(1.01))
+    if edit == "opacities":
+        opacity = surfels.opacity.copy()
+        opacity[n // 3] = 0.5
+        return replace(surfels, opacity=opacity)
+    if edit == "material":
+        return replace(surfels, material=ds.Material(specular=0.5))
+    raise AssertionError(edit)
+
+
+FOCUS_PULL = [sequence.Keyframe(0.0, {"focus": (1.5,)}), sequence.Keyframe(1.0, {"focus": (4.0,)})]
+
+
+@pytest.mark.parametrize("edit", ["recoloured", "reweighted", "radii", "opacities", "material"])
+def test_a_folder_of_another_model_is_refused(tmp_path, scene, edit):
+    """Two frames into a folder, the model changed, the same sequence again: refused, one
+    line naming the folder and the model, the frames left alone (the old fingerprint, the
+    count and a sample of positions, kept the stale frames without a word); the model
+    itself still resumes."""
+    surfels, camera, lens = scene
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 3, camera, lens, output=out, frame_format="npy")
+    (out / "frame_0001.npy").unlink()  # an interrupted run
+    first = (out / "frame_0000.npy").read_bytes()
+    with pytest.raises(DofsplatError) as error:
+        sequence.animate(_edited(surfels, edit), FOCUS_PULL, 3, camera, lens, output=out,
+                         frame_format="npy")
+    assert str(error.value) == (f"{out} holds the frames of another sequence (another model: "
+                                "its arrays or material differ): give another folder, or "
+                                "delete it")
+    assert not (out / "frame_0001.npy").exists()
+    assert (out / "frame_0000.npy").read_bytes() == first
+    sequence.animate(surfels, FOCUS_PULL, 3, camera, lens, output=out, frame_format="npy")
+    assert (out / "frame_0001.npy").exists() and (out / "frame_0000.npy").read_bytes() == first
+
+
+def test_a_model_edited_in_place_is_another_model(tmp_path):
+    """A notebook recolours the same ``Surfels`` in place between two runs: the folder's
+    hash is computed afresh each run (a hash kept on the object would not see it)."""
+    surfels = grid_surfels(n=32)
+    camera = ds.Camera(eye=(0, 0, 2), target=(0, 0, 0), width=32, height=24, fov_y=40)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.05)
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 2, camera, lens, output=out, frame_format="npy")
+    surfels.colors[5] = (0.0, 1.0, 0.0)
+    with pytest.raises(DofsplatError, match=r"\(another model: its arrays or material differ\)"):
+        sequence.animate(surfels, FOCUS_PULL, 2, camera, lens, output=out, frame_format="npy")
+
+
+def test_other_arguments_and_model_are_both_named(tmp_path, scene):
+    surfels, camera, lens = scene
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+    with pytest.raises(DofsplatError, match=r"\(other cameras, lenses or settings\)"):
+        sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, ds.RenderSettings(cutoff=2.0),
+                         output=out, frame_format="npy")
+    with pytest.raises(DofsplatError, match=r"\(another model: its arrays or material differ; "
+                                            r"other cameras, lenses or settings\)"):
+        sequence.animate(_edited(surfels, "radii"), FOCUS_PULL, 2, camera, lens, output=out,
+                         frame_format="npy")
+
+
+@pytest.mark.parametrize("damage", ["{\"sequence\": ", "[]", "{\"frames\": 3}", "\xff\xfe"])
+def test_a_damaged_manifest(tmp_path, scene, damage):
+    """A folder of frames whose record is damaged (cut short, not an object, no hash, not
+    text) is refused, naming the damage (a list crashed with an AttributeError; the rest
+    were called another sequence); with no frames beside it, it is written anew."""
+    surfels, camera, lens = scene
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+    manifest = out / sequence.MANIFEST
+    manifest.write_bytes(damage.encode("latin-1"))
+    with pytest.raises(DofsplatError, match=rf"^{re.escape(str(out))} holds frames whose record "
+                                            r"\.dofsplat-sequence\.json is damaged \((not "
+                                            r"readable JSON|not a dofsplat sequence record)"):
+        sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+    assert manifest.read_bytes() == damage.encode("latin-1")
+    (out / "frame_0000.npy").unlink()
+    sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+    assert json.loads(manifest.read_text())["version"] == sequence.MANIFEST_VERSION
+    assert (out / "frame_0000.npy").exists()
+
+
+def test_a_folder_of_an_older_dofsplat_is_refused(tmp_path, scene):
+    """A record written before the model's whole hash was kept (its count and a sample of
+    positions) cannot tell a recoloured model: its frames are not trusted."""
+    surfels, camera, lens = scene
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+    (out / sequence.MANIFEST).write_text(json.dumps({"sequence": "0123456789abcdef0123",
+                                                     "frames": 1}))
+    with pytest.raises(DofsplatError, match=rf"^{re.escape(str(out))} holds the frames of a "
+                                            "sequence that an older dofsplat wrote"):
+        sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=out, frame_format="npy")
+
+
+def test_a_folder_of_foreign_frames_is_refused(tmp_path, scene):
+    """PNG frames that no dofsplat sequence wrote (no record beside them): refused, one line
+    naming the folder, the files untouched; other files in a folder are no frames."""
+    from PIL import Image
+
+    surfels, camera, lens = scene
+    out = tmp_path / "shots"
+    out.mkdir()
+    for k in range(2):
+        Image.new("RGB", (W, H), (k * 100, 0, 0)).save(out / f"frame_{k:04d}.png")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(DofsplatError) as error:
+        sequence.animate(surfels, FOCUS_PULL, 2, camera, lens, output=out)
+    assert str(error.value) == (f"{out} already holds frame files that no dofsplat sequence "
+                                "wrote: give another folder")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    other = tmp_path / "other"
+    other.mkdir()
+    Image.new("RGB", (W, H)).save(other / "photo.png")
+    sequence.animate(surfels, FOCUS_PULL, 1, camera, lens, output=other)
+    assert sorted(p.name for p in other.iterdir()) == [".dofsplat-sequence.json",
+                                                       "frame_0000.png", "photo.png"]
+
+
+def test_a_resume_on_a_dask_scheduler(tmp_path, scene):
+    """A folder begun here resumes on a Dask scheduler (a Client by its address, as
+    ``--scheduler`` makes): only the missing frame is rendered, there, equal to the one
+    rendered here; the model changed is refused there as here, before anything is sent."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    surfels, camera, lens = scene
+    out = tmp_path / "frames"
+    sequence.animate(surfels, FOCUS_PULL, 3, camera, lens, output=out, frame_format="npy")
+    middle = np.load(out / "frame_0001.npy")
+    (out / "frame_0001.npy").unlink()
+    kept = {k: (out / f"frame_000{k}.npy").stat().st_mtime_ns for k in (0, 2)}
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, \
+            Client(cluster.scheduler_address) as client:
+        with pytest.raises(DofsplatError, match="another model: its arrays or material differ"):
+            sequence.animate(_edited(surfels, "recoloured"), FOCUS_PULL, 3, camera, lens,
+                             output=out, frame_format="npy", client=client)
+        assert not (out / "frame_0001.npy").exists()
+        sequence.animate(surfels, FOCUS_PULL, 3, camera, lens, output=out, frame_format="npy",
+                         client=client)
+    np.testing.assert_array_equal(np.load(out / "frame_0001.npy"), middle)
+    assert {k: (out / f"frame_000{k}.npy").stat().st_mtime_ns for k in (0, 2)} == kept

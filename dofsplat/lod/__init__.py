@@ -19,11 +19,14 @@ __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gat
 def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
     """The hierarchy of ``surfels``, built on first use and kept on the object.
 
-    The cached tree is reused while the surfel count is unchanged; after editing a model's
-    arrays in place, build a new ``Surfels`` (or call ``build_hierarchy``).
+    The kept tree is reused while its fingerprint is the model's: an array assigned anew
+    (``surfels.colors = ...``, with the same count too) builds it again. An edit in place
+    (``surfels.colors[0] = ...``) is not seen: build a new ``Surfels`` (or call
+    ``build_hierarchy``) after one.
     """
     tree = getattr(surfels, "_lod_hierarchy", None)
-    if tree is None or tree.n_surfels != len(surfels):
+    if tree is None or tree.n_surfels != len(surfels) or \
+            tree.fingerprint != fingerprint(surfels, cached=True):
         tree = build_hierarchy(surfels, progress=progress)
         surfels._lod_hierarchy = tree
     return tree

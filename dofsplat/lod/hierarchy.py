@@ -58,17 +58,17 @@ ceil(log2 count).
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba
+from ..jit import numba
 import numpy as np
 
 from ..errors import DofsplatError
+from ..fingerprint import content_hash
 from ..splat.ewa import tangent_frame
 from ..surfels import Surfels
 
@@ -263,14 +263,15 @@ def _radii_weight(surfels: Surfels):
     return surfels.radius, rv, weight
 
 
-def fingerprint(surfels: Surfels) -> str:
-    """A hash of every surfel array that the tree depends on (changes when the model does)."""
-    h = hashlib.blake2b(digest_size=16)
-    h.update(f"v{FORMAT_VERSION} n{len(surfels)}".encode())
-    for a in (surfels.positions, surfels.normals, surfels.radius, surfels.colors,
-              surfels.opacity, surfels.tangent, surfels.radius_v, surfels.weight):
-        h.update(b"-" if a is None else np.ascontiguousarray(a).view(np.uint8).data)
-    return h.hexdigest()
+TREE_FIELDS = ("positions", "normals", "radius", "colors", "opacity", "tangent", "radius_v",
+               "weight")  # the surfel arrays a tree is built from (not the material)
+
+
+def fingerprint(surfels: Surfels, cached: bool = False) -> str:
+    """The content hash (``dofsplat.fingerprint``) of every surfel array that the tree
+    depends on, and of the tree's format: changes when the model does. cached: reuse the
+    hash kept on the model while its arrays are the same objects (edits in place unseen)."""
+    return content_hash(surfels, TREE_FIELDS, f"lod v{FORMAT_VERSION}", cached=cached)
 
 
 def build_hierarchy(surfels: Surfels, progress: bool = False,
