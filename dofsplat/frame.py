@@ -23,6 +23,7 @@ from .surfels import Surfels
 
 DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
 RECONSTRUCTIONS = ("soft", "paper")
+GAUSSIAN_BLURS = ("ours", "viewers")  # RenderSettings.gaussian_blur
 MAX_LOD_MIN_NODE = 64  # RenderSettings.lod_min_node: larger would leave LOD little to do
 
 
@@ -50,6 +51,8 @@ class RenderSettings:
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
     lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
+    gaussian_blur: str = "ours"  # Gaussian scenes: "ours" (the aperture's variance added, opacity spread, the 1/255 cut on the sharp footprint's scale) or "viewers" (the baseline of PlayCanvas and Spark: CoC^2 added, the cut on the spread opacity); gauss/project.py
+    gaussian_antialiased: bool = False  # Gaussian scenes: gsplat's "antialiased" mode, the opacity scaled by sqrt(det before / det after) the 0.3 px^2 low-pass (for scenes trained so; gauss/project.py)
     sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); 1.1-1.5 x a pinhole frame's time (bench/profile.py --sharp-visibility); the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 
     def __post_init__(self):
@@ -100,6 +103,9 @@ class RenderSettings:
                                 f"got {self.lens_samples!r}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
+        if self.gaussian_blur not in GAUSSIAN_BLURS:
+            raise DofsplatError(f"gaussian_blur must be one of {', '.join(GAUSSIAN_BLURS)}, "
+                                f"got {self.gaussian_blur!r}")
         if self.device not in DEVICES:
             raise DofsplatError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
 
@@ -136,8 +142,11 @@ def frame_arguments(caller: str, surfels, camera, lens, settings, hierarchy=None
     been checked: arguments swapped or a lens left out (``render(surfels, camera,
     settings)``) are a DofsplatError naming the argument, not an AttributeError deep in a
     backend. ``caller`` names the function, e.g. "render()"."""
-    if not isinstance(surfels, Surfels):
-        raise DofsplatError(f"{caller} needs a Surfels model")
+    from .gaussians import Gaussians
+
+    if not isinstance(surfels, (Surfels, Gaussians)):
+        raise DofsplatError(f"{caller} needs a model: Surfels or Gaussians, got "
+                            f"{type(surfels).__name__}")
     expected = (("camera", camera, Camera, "a Camera"),
                 # (a ResidualLens too: a part of the lens, frame.lens_parts, drawn on its own)
                 ("lens", lens, (ThinLens, EyeLens, ResidualLens, type(None)),

@@ -141,8 +141,10 @@ def render_reference(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens 
     pinhole = _pinhole_settings(settings, shaded=not shade_per_sample)
 
     t = time.perf_counter()
-    if not shade_per_sample:
-        # shade once from the lens centre, as render() does for our DOF image
+    if not shade_per_sample and isinstance(surfels, Surfels):
+        # shade once from the lens centre, as render() does for our DOF image (a Gaussian
+        # scene is unlit: each sample evaluates its spherical harmonics from its own eye,
+        # as a camera at that point of the lens would see them)
         surfels = dataclasses.replace(surfels, colors=shade_surfels(surfels, camera, settings))
     shade_ms = _ms(t)
 

@@ -21,6 +21,7 @@ from .errors import DofsplatError
 from .frame import (LOD_PALETTE, RECONSTRUCTIONS, RenderResult, RenderSettings,
                     aperture_shape, coc_coefficients, frame_arguments, kernel_floor,
                     lod_level_colors, lod_tree, merge_parameters)
+from .gaussians import Gaussians
 from .surfels import Surfels
 
 __all__ = [
@@ -31,11 +32,13 @@ __all__ = [
 ]
 
 
-def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = None,
-           settings: RenderSettings | None = None, hierarchy=None) -> RenderResult:
-    """Render surfels with depth of field (paper Sections 4-6).
+def render(surfels: Surfels | Gaussians, camera: Camera,
+           lens: ThinLens | EyeLens | None = None, settings: RenderSettings | None = None,
+           hierarchy=None) -> RenderResult:
+    """Render surfels with depth of field (paper Sections 4-6), or a 3D Gaussian Splatting
+    scene as its trainers draw it, through the same lens (``dofsplat.gauss``).
 
-    surfels:   the model (``Surfels``)
+    surfels:   the model (``Surfels``, or ``Gaussians``)
     camera:    view, projection and image size (``Camera``)
     lens:      ``ThinLens`` or ``EyeLens``; None, or an aperture of 0, is a pinhole
     settings:  ``RenderSettings`` (cutoff, shading, background, LOD, ...)
@@ -44,6 +47,16 @@ def render(surfels: Surfels, camera: Camera, lens: ThinLens | EyeLens | None = N
     """
     settings = frame_arguments("render()", surfels, camera, lens, settings, hierarchy)
     from .backends import resolve_device
+
+    if isinstance(surfels, Gaussians):
+        if hierarchy is not None:
+            raise DofsplatError("render(): a Gaussian scene takes no surfel hierarchy")
+        if settings.device == "cuda":
+            raise DofsplatError("the GPU backend does not draw Gaussian scenes yet: render "
+                                "them with device 'cpu' (or 'auto')")
+        from .backends.cpu_gauss import render_gaussians_cpu
+
+        return render_gaussians_cpu(surfels, camera, lens, settings)
 
     if resolve_device(settings.device) == "cuda":
         from .backends.cuda import render_cuda

@@ -1,16 +1,18 @@
-"""Fuzzing the PLY and PCD readers: a damaged file is a DofsplatError, never anything else.
+"""Fuzzing the PLY, PCD and Gaussian-scene readers: a damaged file is a DofsplatError, never
+anything else.
 
 Seeds are small valid files of every kind the readers tell apart (surfels, bare points,
 meshes and 3D Gaussian splats in PLY, ASCII / binary / gzip; PCD in its three data modes,
-organised or not). Each is mutated in two ways:
+organised or not; Gaussian scenes as a compressed PLY with an sh element, SPZ versions 2, 3
+and 4, and a zipped SOG). Each is mutated in two ways:
 
 * a deterministic loop of byte mutations (flips, truncations, insertions, deletions,
   numbers in the header replaced by others): FUZZ_CASES files per reader;
 * hypothesis, which picks a seed and a list of edits (max_examples per reader), with no
   example database so that a run leaves nothing behind.
 
-A mutated file must load as surfels or raise DofsplatError: any other exception, a hang
-(the suite's timeout) or a crash is a bug. Mesh sampling is capped at a few samples so that
+A mutated file must load as surfels (or Gaussians) or raise DofsplatError: any other
+exception, a hang (the suite's timeout) or a crash is a bug. Mesh sampling is capped at a few samples so that
 the test stays at a few seconds. A longer run: DOFSPLAT_FUZZ_CASES=20000
 DOFSPLAT_FUZZ_EXAMPLES=4000 python -m pytest tests/test_fuzz.py (passed when written).
 """
@@ -33,6 +35,7 @@ from hypothesis import strategies as st
 from plyfile import PlyData, PlyElement
 
 from dofsplat.errors import DofsplatError
+from dofsplat.gaussians import Gaussians
 from dofsplat.io import load
 from dofsplat.surfels import Surfels
 
@@ -132,6 +135,40 @@ def pcd_seeds() -> list[tuple[str, bytes]]:
     ]
 
 
+@functools.lru_cache(maxsize=None)
+def gaussian_seeds() -> list[tuple[str, bytes]]:
+    """Small Gaussian scenes, written by the encoders of tests/test_gaussian_io.py."""
+    import tempfile
+    import zipfile
+
+    from test_gaussian_io import compressed_ply, sog_files, sog_scene, spz_bytes, spz_scene
+
+    rng = np.random.default_rng(2)
+    n = 12
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, "c.ply")
+        compressed_ply(path, rng.normal(size=(n, 3)), rng.uniform(-5, -1, (n, 3)),
+                       rng.normal(size=(n, 4)), rng.uniform(0, 1, (n, 3)), rng.uniform(0, 1, n),
+                       rest=rng.uniform(-1, 1, (n, 3, 3)))
+        with open(path, "rb") as f:
+            compressed = f.read()
+    sog = io.BytesIO()
+    with zipfile.ZipFile(sog, "w", zipfile.ZIP_STORED) as z:
+        for name, data in sog_files(**sog_scene(n=n)).items():
+            z.writestr(name, data)
+    scene = spz_scene(n=n)
+    return [
+        ("scene.compressed.ply", compressed),
+        ("v2.spz", spz_bytes(2, **scene)),
+        ("v3.spz", spz_bytes(3, **scene)),
+        ("v4.spz", spz_bytes(4, **scene)),
+        ("scene.sog", sog.getvalue()),
+    ]
+
+
+SEEDS = {"ply": ply_seeds, "pcd": pcd_seeds, "gaussians": gaussian_seeds}
+
+
 # -- mutations -----------------------------------------------------------------------------
 
 
@@ -166,7 +203,7 @@ def mutate(data: bytes, rng: random.Random) -> bytes:
 
 
 def load_or_error(path) -> None:
-    """Load a (damaged) file: Surfels or DofsplatError, nothing else."""
+    """Load a (damaged) file: Surfels, Gaussians or DofsplatError, nothing else."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -174,7 +211,7 @@ def load_or_error(path) -> None:
         except DofsplatError as e:
             assert str(e) and "\n" not in str(e), repr(str(e))
             return
-    assert isinstance(result, Surfels)
+    assert isinstance(result, (Surfels, Gaussians))
 
 
 @pytest.fixture(autouse=True)
@@ -198,9 +235,9 @@ def _check_mutation(path, data: bytes, what: str) -> None:
 # -- the tests -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kind", ["ply", "pcd"])
+@pytest.mark.parametrize("kind", ["ply", "pcd", "gaussians"])
 def test_seeds_load(tmp_path, kind):
-    for name, data in (ply_seeds() if kind == "ply" else pcd_seeds()):
+    for name, data in SEEDS[kind]():
         path = tmp_path / name
         path.write_bytes(data)
         with warnings.catch_warnings():
@@ -208,9 +245,9 @@ def test_seeds_load(tmp_path, kind):
             assert len(load(path)) > 0, name
 
 
-@pytest.mark.parametrize("kind", ["ply", "pcd"])
+@pytest.mark.parametrize("kind", ["ply", "pcd", "gaussians"])
 def test_byte_mutations_raise_only_dofsplat_errors(tmp_path, kind):
-    seeds = ply_seeds() if kind == "ply" else pcd_seeds()
+    seeds = SEEDS[kind]()
     rng = random.Random(f"dofsplat-{kind}")
     for i in range(FUZZ_CASES):
         name, data = seeds[i % len(seeds)]
@@ -254,6 +291,32 @@ def test_hypothesis_ply(tmp_path, seed, edits, cut):
 def test_hypothesis_pcd(tmp_path, seed, edits, cut):
     name, data = pcd_seeds()[seed]
     _check_mutation(tmp_path / name, _apply(data, edits, cut), f"pcd from {name}")
+
+
+def test_sog_member_mutations_raise_only_dofsplat_errors(tmp_path):
+    """A zip's checksums catch most flips in a .sog: here one member at a time (meta.json or
+    an image) is damaged and the archive rebuilt, so that the JSON and WebP decoding see it."""
+    import zipfile
+
+    from test_gaussian_io import sog_files, sog_scene
+
+    files = sog_files(**sog_scene(n=12))
+    names = sorted(files)
+    rng = random.Random("dofsplat-sog")
+    for i in range(FUZZ_CASES // 4):
+        name = names[i % len(names)]
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w") as z:
+            for member, data in files.items():
+                z.writestr(member, mutate(data, rng) if member == name else data)
+        _check_mutation(tmp_path / "scene.sog", buf.getvalue(), f"sog case {i}, {name} damaged")
+
+
+@_HYPOTHESIS
+@given(seed=st.integers(0, 4), edits=_edits(), cut=st.none() | st.integers(0, 2000))
+def test_hypothesis_gaussians(tmp_path, seed, edits, cut):
+    name, data = gaussian_seeds()[seed]
+    _check_mutation(tmp_path / name, _apply(data, edits, cut), f"gaussians from {name}")
 
 
 @settings(max_examples=300, deadline=None, database=None, derandomize=True)

@@ -20,6 +20,7 @@ from plyfile import PlyData, PlyElement
 import dofsplat as ds
 from dofsplat import cli
 from dofsplat.errors import DofsplatError
+from dofsplat.gaussians import Gaussians
 from dofsplat.io import LOADERS, load, save_surfels, srgb_to_linear
 from dofsplat.io.gaussians import SH_C0, gaussians_to_surfels, quaternion_matrices
 from dofsplat.io.las import read_las_points
@@ -378,7 +379,8 @@ def test_gaussians_axes_colour_opacity(tmp_path):
                             scale_1=[math.log(0.02)], scale_2=[math.log(0.3)],
                             rot_0=[q[0]], rot_1=[q[1]], rot_2=[q[2]], rot_3=[q[3]])
     path = write_vertex_ply(tmp_path / "g.ply", cols)
-    s = load(path)
+    g = load(path)  # a 3DGS PLY loads as Gaussians (tests/test_gaussian_io.py); as surfels:
+    s = gaussians_to_surfels(g)
     assert s.is_elliptical and len(s) == 1
     # local y (the smallest axis) turned by 90 degrees about z is world -x: the normal
     np.testing.assert_allclose(np.abs(s.normals[0]), [1, 0, 0], atol=1e-6)
@@ -408,11 +410,12 @@ def test_gaussians_bad_rows_and_invisible_ones():
     cols["rot_0"][2] = 0.0  # a zero quaternion
     cols["scale_1"][5] = 500.0  # absurd
     cols["opacity"][7] = -20.0  # invisible: dropped silently
-    with pytest.warns(UserWarning, match=r"dropped 2 of 9 surfels"):
+    with pytest.warns(UserWarning, match=r"dropped 2 of 10 Gaussians"):
         s = gaussians_to_surfels(cols, source="g")
     assert len(s) == 7
     cols["opacity"][:] = -20.0
-    with pytest.raises(DofsplatError, match=r"every Gaussian has opacity below"):
+    with pytest.raises(DofsplatError, match=r"every Gaussian has opacity below"), \
+            pytest.warns(UserWarning, match=r"dropped 2 of 10 Gaussians"):
         gaussians_to_surfels(cols, source="g")
     with pytest.raises(DofsplatError, match=r"lacks rot_3"):
         gaussians_to_surfels({k: v for k, v in cols.items() if k != "rot_3"})
@@ -436,7 +439,7 @@ def test_gaussian_scene_renders_without_holes_and_blended(tmp_path):
             scale_1=np.full(n, math.log(sigma)), scale_2=np.full(n, math.log(0.002)),
             rot_0=np.ones(n), rot_1=np.zeros(n), rot_2=np.zeros(n), rot_3=np.zeros(n)))
     cols = {k: np.concatenate([layer[k] for layer in layers]) for k in layers[0]}
-    s = load(write_vertex_ply(tmp_path / "layers.ply", cols))
+    s = gaussians_to_surfels(load(write_vertex_ply(tmp_path / "layers.ply", cols)))
     result = ds.render(s, front_camera(64, 64, distance=2.0), None,
                        ds.RenderSettings(shading="none"))
     inner = result.image[24:40, 24:40]
@@ -1047,7 +1050,9 @@ def test_real_mug_scene_loads_facing_the_sensor():
 
 
 def test_real_gaussian_donut():
-    s = load(shared("gaussian_donut/fused.ply"))
+    g = load(shared("gaussian_donut/fused.ply"))
+    assert isinstance(g, Gaussians) and len(g) == 45_624
+    s = gaussians_to_surfels(g)  # the flattening a surfel renderer used
     assert s.is_elliptical and 40_000 < len(s) <= 45_624
     assert s.opacity.min() >= 1 / 255 and s.opacity.max() <= 1
     assert np.all(s.radius_v <= s.radius + 1e-9)

@@ -90,8 +90,19 @@ def render_and_write(args, outputs, surfels, camera, default_focus: float,
 
 def render_by_method(args, surfels, camera, lens, settings):
     """Our DOF render, the post-process baseline, or the multisample reference."""
+    from ..gaussians import Gaussians
     from ..render import render
 
+    gaussian = isinstance(surfels, Gaussians)
+    if (args.method == "viewers") != gaussian and args.method in ("viewers", "postfilter"):
+        raise DofsplatError(f"--method {args.method} is for "
+                            f"{'surfel models' if args.method == 'postfilter' else 'Gaussian scenes'}"
+                            f"; this model is {'a Gaussian scene' if gaussian else 'surfels'} "
+                            f"(--method ours, the default, draws both)")
+    if args.method == "viewers":
+        import dataclasses
+
+        return render(surfels, camera, lens, dataclasses.replace(settings, gaussian_blur="viewers"))
     if args.method == "postfilter":
         from ..postfilter import render_postfilter
 

@@ -69,7 +69,7 @@ class Parser(argparse.ArgumentParser):
 
 # what ``render`` reads, for the help texts (dofsplat.io.LOADERS holds the loaders)
 MODEL_EXTENSIONS = (".ply", ".ply.gz", ".obj", ".gltf", ".glb", ".stl", ".off", ".las", ".laz",
-                     ".e57", ".pcd")
+                     ".e57", ".pcd", ".spz", ".sog")
 
 
 def add_input_options(p: argparse.ArgumentParser) -> None:
@@ -305,12 +305,14 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="keep surfels that face away from the camera and light both "
                           "sides (for models with inconsistent normals)")
     if command != "reference":
-        ren.add_argument("--method", choices=("ours", "postfilter"), default="ours",
+        ren.add_argument("--method", choices=("ours", "postfilter", "viewers"), default="ours",
                          help="ours: each splat blurred by its circle of confusion before "
                               "visibility (default); postfilter: the common post-process "
                               "baseline, a pinhole image blurred by the CoC of its depth "
                               "buffer (for comparison: it leaks intensity and misses partial "
-                              "occlusion)")
+                              "occlusion); viewers: for Gaussian scenes, the blur that splat "
+                              "viewers ship (CoC^2 added to each footprint, its opacity "
+                              "scaled), for comparison")
         ren.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu",
                          help="where to render: cpu (default); cuda, an NVIDIA GPU (pip install "
                               "'dofsplat[cuda]'; an error if none works); auto, the GPU if one "

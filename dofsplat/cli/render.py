@@ -54,7 +54,9 @@ def load_model(args):
     args.load_info = getattr(surfels, "load_info", None)
     if args.shading is None:  # a capture's photographed colours: unshaded (io.pcd)
         args.shading = getattr(surfels, "shading_hint", None)
-    if args.lod:
+    from ..gaussians import Gaussians
+
+    if args.lod and not isinstance(surfels, Gaussians):  # (a Gaussian scene has no surfel tree)
         from ..lod.cache import cached_hierarchy
 
         log = None if args.quiet else (lambda m: print(f"dofsplat: {m}", file=sys.stderr))

@@ -1,9 +1,10 @@
 """PLY files (ASCII or binary, optionally gzip-compressed): surfels, and everything else.
 
 :func:`read_ply` (the loader for ``.ply`` and ``.ply.gz``) reads the header and dispatches
-(:func:`ply_kind`): surfel files to :func:`read_surfel_ply`, 3D Gaussian Splatting files to
-:mod:`dofsplat.io.gaussians`, meshes to :mod:`dofsplat.prep.meshes`, bare points to
-:mod:`dofsplat.prep.pointcloud` (docs/formats.md). Binary bodies are read by ``plyfile``, ASCII
+(:func:`ply_kind`): surfel files to :func:`read_surfel_ply`, 3D Gaussian Splatting files (the
+trainers' PLY and PlayCanvas's compressed PLY) to :mod:`dofsplat.io.gaussians`, meshes to
+:mod:`dofsplat.prep.meshes`, bare points to :mod:`dofsplat.prep.pointcloud`
+(docs/formats.md). Binary bodies are read by ``plyfile``, ASCII
 bodies by one numpy tokenisation (:func:`_read_ascii_body`).
 
 A surfel PLY has one ``vertex`` element with the properties
@@ -33,8 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DofsplatError
+from ..gaussians import Gaussians
 from ..surfels import Material, Surfels
 from ..colors import srgb_to_linear
+from .gaussians import is_compressed_ply
 from .images import atomic_write
 
 REQUIRED = ("x", "y", "z", "nx", "ny", "nz", "radius")
@@ -92,9 +95,12 @@ def _read_vertex_columns(path: Path) -> dict[str, np.ndarray]:
     return _read_elements(path)["vertex"]
 
 
-def _read_elements(path: Path, faces: bool = False) -> dict[str, dict[str, np.ndarray]]:
-    """The ``vertex`` element's scalar properties, and with faces=True the ``face``
-    element's vertex lists (under "face": {"indices": (F, L) array or ragged object array}).
+def _read_elements(path: Path, faces: bool = False,
+                   extra: tuple[str, ...] = ()) -> dict[str, dict[str, np.ndarray]]:
+    """The ``vertex`` element's scalar properties, with faces=True the ``face`` element's
+    vertex lists (under "face": {"indices": (F, L) array or ragged object array}), and the
+    scalar properties of the ``extra`` elements that the file has (a compressed 3DGS PLY's
+    chunk and sh elements).
     """
     from plyfile import (
         PlyData,
@@ -125,6 +131,11 @@ def _read_elements(path: Path, faces: bool = False) -> dict[str, dict[str, np.nd
             out = {"vertex": {p.name: np.array(vertex[p.name]) for p in vertex.properties
                               if not isinstance(p, PlyListProperty)}}
             count = vertex.count
+            for name in extra:
+                if name in ply:
+                    out[name] = {p.name: np.array(ply[name][p.name])
+                                 for p in ply[name].properties
+                                 if not isinstance(p, PlyListProperty)}
             if faces and "face" in ply:
                 face = ply["face"]
                 name = next((n for n in FACE_LISTS if n in face.data.dtype.names), None)
@@ -331,14 +342,15 @@ def parse_ply_header(data: bytes, source: str = "PLY") -> PlyHeader:
 def ply_kind(header: PlyHeader) -> str:
     """What the vertex element holds, by its property names, checked in this order:
 
-    * "gaussians": 3D Gaussian Splatting output (f_dc_0, scale_0, rot_0, ...);
+    * "gaussians": 3D Gaussian Splatting output (f_dc_0, scale_0, rot_0, ...), or
+      PlayCanvas's compressed PLY of one (a chunk element, packed_position, ...);
     * "surfels": a radius (or some but not all of nx ny nz: a damaged surfel file);
     * "mesh": a non-empty face element;
     * "points": anything else with x y z (normals and colours optional).
     """
     vertex = header.element("vertex")
     names = set(vertex.names) if vertex is not None else set()
-    if {"f_dc_0", "scale_0", "rot_0"} <= names:
+    if {"f_dc_0", "scale_0", "rot_0"} <= names or is_compressed_ply(header):
         return "gaussians"
     normals = [n for n in NORMAL if n in names]
     if "radius" in names or 0 < len(normals) < 3:
@@ -351,7 +363,8 @@ def ply_kind(header: PlyHeader) -> str:
 
 _KIND_WORDS = {"surfels": "a surfel PLY", "gaussians": "a 3D Gaussian Splatting PLY",
                "mesh": "a triangle mesh", "points": "a point cloud (a PLY without faces)"}
-_KIND_OPTIONS = {"surfels": ("normalise",), "gaussians": ("normalise",),
+# a Gaussian scene is taken as it is: it has no surfel weights to normalise, no normals
+_KIND_OPTIONS = {"surfels": ("normalise",), "gaussians": (),
                  "mesh": ("points", "texture", "smooth", "normalise"),
                  "points": ("k", "smooth", "normalise")}
 
@@ -365,11 +378,13 @@ def ply_options(header: PlyHeader) -> tuple[str, tuple[str, ...]]:
 
 def read_ply(path, *, material: Material | None = None, points: int | str | None = None,
              k: int | None = None, smooth: bool | None = None, texture=None,
-             normalise: str | None = None) -> Surfels:
-    """Load any PLY file as surfels: the header says what it holds (:func:`ply_kind`).
+             normalise: str | None = None) -> Surfels | Gaussians:
+    """Load any PLY file: the header says what it holds (:func:`ply_kind`).
 
     * surfels: :func:`read_surfel_ply`, as they are (with their stored weights);
-    * 3D Gaussian splats: one elliptical surfel per Gaussian (:mod:`dofsplat.io.gaussians`);
+    * a 3D Gaussian Splatting scene (the trainers' PLY or PlayCanvas's compressed PLY):
+      :class:`dofsplat.Gaussians` (:mod:`dofsplat.io.gaussians`); it takes no options,
+      ``material`` neither (Gaussians are drawn unlit);
     * a triangle mesh (polygons are split into fans): sampled by
       :func:`dofsplat.prep.meshes.mesh_to_surfels`, ``points`` samples (None: the default count;
       "vertices": one per vertex); vertex colours red green blue [alpha] (uchar, ushort:
@@ -381,7 +396,7 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
       (None: True, points moved onto their neighbourhood's plane).
 
     normalise: the per-surfel normalisation (:func:`dofsplat.prep.normalise.normalise`): None
-    gives "object" for meshes and points and leaves surfel and 3DGS files as they are; a
+    gives "object" for meshes and points and leaves surfel files as they are; a
     method given is applied to whatever the file holds ("none": nothing).
 
     ASCII bodies are read by numpy's tokeniser when every face has the same number of
@@ -405,7 +420,7 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
         raise DofsplatError(f"{path}: the vertex element is empty (0 points)")
     kind = ply_kind(header)
     given = {"points": points, "k": k, "smooth": smooth, "texture": texture,
-             "normalise": normalise}
+             "normalise": normalise, "material": material if kind == "gaussians" else None}
     wrong = [name for name, v in given.items() if v is not None and name not in _KIND_OPTIONS[kind]]
     if wrong:
         raise DofsplatError(f"{path} is {_KIND_WORDS[kind]}: option(s) {', '.join(wrong)} do "
@@ -413,16 +428,17 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     if kind == "surfels":
         surfels = normalise_surfels(read_surfel_ply(path, material=material), normalise or "none")
         return _apply_view_comments(surfels, header.comments)
+    if kind == "gaussians":  # a 3DGS PLY, or PlayCanvas's compressed one (io/gaussians.py)
+        from .gaussians import decode_compressed_ply, gaussians_from_columns
+
+        if is_compressed_ply(header):
+            return decode_compressed_ply(_read_elements(path, extra=("chunk", "sh")), str(path))
+        return gaussians_from_columns(_read_body(path, header, faces=False)["vertex"], str(path))
     missing = [n for n in ("x", "y", "z") if n not in vertex.names]
     if missing:
         raise DofsplatError(f"{path}: vertex element lacks {' '.join(missing)}")
     elements = _read_body(path, header, faces=kind == "mesh")
     columns = elements["vertex"]
-    if kind == "gaussians":
-        from .gaussians import gaussians_to_surfels
-
-        surfels = gaussians_to_surfels(columns, material=material, source=str(path))
-        return normalise_surfels(surfels, normalise or "none")
     if kind == "mesh":
         return _mesh_surfels(path, header, columns, elements.get("face"), points, texture,
                              material, smooth is not False, normalise or "object")

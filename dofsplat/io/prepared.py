@@ -16,6 +16,8 @@ preparation code. The key is a hash of:
 
 Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model read back from the
 cache does not repeat the warnings its first load gave (dropped NaN points, for instance).
+Gaussian scenes (``dofsplat.Gaussians``) are never kept: they need no preparation, and
+``dofsplat.io.load`` does not look for them here.
 
 Files are written atomically; a cache that cannot be written costs a preparation next time,
 no more.
@@ -41,8 +43,9 @@ OPTIONAL = ("opacity", "tangent", "radius_v", "weight")
 _CODE_HASH: list[str] = []
 
 
-def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> Surfels:
-    """``loader(path, **options)``, through the cache (module notes)."""
+def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
+    """``loader(path, **options)``, through the cache (module notes): Surfels, or the
+    Gaussians of a Gaussian scene (never written to the cache)."""
     key = cache_key(path, loader, options) if use_cache and cache.enabled() else None
     file = cache.cache_folder("surfels") / f"{key}.npz" if key else None
     t0 = time.perf_counter()
@@ -56,7 +59,7 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True) -> 
     surfels = loader(path, **options)
     seconds = time.perf_counter() - t0
     surfels.load_info = {"seconds": seconds, "from_cache": False, "cache_file": None}
-    if file is not None and seconds >= MIN_SECONDS:
+    if file is not None and seconds >= MIN_SECONDS and isinstance(surfels, Surfels):
         try:
             write_surfels(file, surfels)
             cache.enforce_cap(keep=file)  # (a model larger than the cap goes at once)

@@ -1,0 +1,183 @@
+"""Gaussian scenes through a lens (issue 48): dofsplat against gsplat and against the truth.
+
+    python bench/gaussians.py [--size 640x480] [--samples 256] [--scenes donut fruit ...]
+        [--out bench/gaussians.json]
+
+For each shared 3DGS scene, seen by the default camera of ``dofsplat render`` (the scene's
+``view_bounds`` framed from +z, up = the scene's ``up_hint``):
+
+* **pinhole**: dofsplat's frame against gsplat 1.5.3's image of the same Gaussians and
+  camera (``bench/gsplat_peer.py``; skipped where torch and gsplat are not installed:
+  ``pip install -e ".[gsplat-peer]"``), PSNR on the displayed values;
+* **depth of field**, focused on the surface at the image centre, at apertures whose largest
+  circle of confusion over the frame's depths (its 2nd and 98th percentiles) is 10, 20 and
+  35 px: the default frame (``ours``), the viewers' blur (``viewers``: PlayCanvas
+  splat-transform's and Spark's), the pinhole image and ``--lens-samples 4``, each against
+  the truth, the average of ``--samples`` pinhole frames through points of the lens
+  (``dofsplat reference``): whole-frame PSNR and the worst 2 % of 32 x 32 tiles;
+* **time**: the pinhole frame and the default frame of the same run (the machine is named).
+
+The figures go to ``--out`` (JSON) and a table on stdout; bench/RESULTS.md quotes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+SCENES = {
+    "donut": DATA / "gaussian_donut" / "fused.ply",
+    "fruit": DATA / "gaussian_scenes" / "fruit_drops_minimal.ply",
+    "guitar": DATA / "gaussian_scenes" / "guitar.compressed.ply",
+    "biker": DATA / "gaussian_scenes" / "biker.spz",
+    "playbot": DATA / "gaussian_scenes" / "playbot" / "1_0" / "meta.json",
+}
+COCS = (10.0, 20.0, 35.0)
+TILE = 32
+
+
+def default_camera(scene, width, height):
+    import dofsplat as ds
+
+    lo, hi = scene.view_bounds()
+    return ds.Camera.framing(lo, hi, width, height, 40.0, direction=(0.0, 0.0, 1.0),
+                             up=tuple(getattr(scene, "up_hint", (0.0, 1.0, 0.0))))
+
+
+def worst_tiles(a, b, fraction=0.02):
+    """The mean PSNR of the worst ``fraction`` of 32 x 32 tiles (displayed values)."""
+    from dofsplat.metrics import display_values
+
+    x, y = display_values(a), display_values(b)
+    h, w = x.shape[:2]
+    scores = []
+    for ty in range(0, h - TILE + 1, TILE):
+        for tx in range(0, w - TILE + 1, TILE):
+            mse = float(np.mean((x[ty:ty + TILE, tx:tx + TILE] - y[ty:ty + TILE, tx:tx + TILE]) ** 2))
+            scores.append(10 * np.log10(1.0 / max(mse, 1e-12)))
+    scores = np.sort(scores)
+    k = max(1, int(round(fraction * len(scores))))
+    return float(np.mean(scores[:k]))
+
+
+def lens_for(scene, camera, coc_px, depth):
+    """The thin lens focused at the image centre's depth whose largest CoC over the frame's
+    depths (2nd-98th percentile) is coc_px."""
+    import dofsplat as ds
+
+    d = depth[np.isfinite(depth)]
+    focus = float(np.median(depth[camera.height // 2 - 2:camera.height // 2 + 3,
+                                  camera.width // 2 - 2:camera.width // 2 + 3]))
+    if not np.isfinite(focus):
+        focus = float(np.median(d))
+    near, far = np.percentile(d, 2), np.percentile(d, 98)
+    worst = max(abs(1 / near - 1 / focus), abs(1 / far - 1 / focus))
+    aperture = 2 * coc_px / (camera.pixels_per_unit_at_unit_depth * worst)
+    return ds.ThinLens(focus_distance=focus, aperture=aperture)
+
+
+def gsplat_image(scene, camera):
+    try:
+        sys.path.insert(0, str(ROOT / "bench"))
+        import gsplat_peer
+    except ImportError as e:
+        return None, f"gsplat peer unavailable ({e})"
+    try:
+        image, _ = gsplat_peer.gsplat_render(scene, camera)
+    except ImportError as e:
+        return None, f"gsplat peer unavailable ({e})"
+    return np.asarray(image, np.float64), None
+
+
+def run_scene(name, path, size, samples, settings):
+    import dofsplat as ds
+    from dofsplat.io import linear_to_srgb, load
+    from dofsplat.metrics import psnr
+    from dofsplat.reference import render_reference
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load(path)
+    camera = default_camera(scene, *size)
+    out = {"scene": str(path.relative_to(DATA)), "gaussians": len(scene),
+           "sh_degree": scene.sh_degree, "size": list(size)}
+    t = time.perf_counter()
+    pinhole = ds.render(scene, camera, None, settings)
+    out["pinhole_s"] = time.perf_counter() - t
+    peer, why = gsplat_image(scene, camera)
+    if peer is not None:
+        ours = linear_to_srgb(pinhole.rgb.astype(np.float64))
+        mse = float(np.mean((ours - np.clip(peer, 0, 1)) ** 2))
+        out["pinhole_vs_gsplat_db"] = 10 * np.log10(1 / max(mse, 1e-20))
+    else:
+        out["pinhole_vs_gsplat_db"] = why
+    out["dof"] = []
+    for coc in COCS:
+        lens = lens_for(scene, camera, coc, pinhole.depth)
+        t = time.perf_counter()
+        ref = render_reference(scene, camera, lens, settings, samples=samples, progress=False)
+        ref_s = time.perf_counter() - t
+        row = {"coc_px": coc, "focus": lens.focus_distance, "aperture": lens.aperture,
+               "reference_s": ref_s}
+        frames = {}
+        t = time.perf_counter()
+        frames["ours"] = ds.render(scene, camera, lens, settings)
+        row["ours_s"] = time.perf_counter() - t
+        frames["viewers"] = ds.render(scene, camera, lens,
+                                      dataclasses.replace(settings, gaussian_blur="viewers"))
+        frames["pinhole"] = pinhole
+        t = time.perf_counter()
+        frames["parts4"] = ds.render(scene, camera, lens,
+                                     dataclasses.replace(settings, lens_samples=4))
+        row["parts4_s"] = time.perf_counter() - t
+        for key, frame in frames.items():
+            row[key] = {"psnr": psnr(frame.image, ref.image),
+                        "worst_2pct_tiles": worst_tiles(frame.image, ref.image)}
+        out["dof"].append(row)
+        print(f"  {name} CoC {coc:4.0f} px: " + "  ".join(
+            f"{k} {row[k]['psnr']:.2f} ({row[k]['worst_2pct_tiles']:.2f})" for k in frames)
+            + f"  ours {row['ours_s']:.2f} s, pinhole {out['pinhole_s']:.2f} s", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", default="640x480")
+    parser.add_argument("--samples", type=int, default=256)
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "gaussians.json")
+    args = parser.parse_args(argv)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # torch beside numba on 2 cores
+    import dofsplat as ds
+    from dofsplat.render import warm_up
+
+    warm_up()
+    settings = ds.RenderSettings()
+    results = {"machine": f"{platform.machine()} {os.cpu_count()} cores, {platform.node()}",
+               "samples": args.samples, "scenes": {}}
+    for name in args.scenes:
+        if not SCENES[name].exists():
+            print(f"  {name}: not found ({SCENES[name]})")
+            continue
+        results["scenes"][name] = run_scene(name, SCENES[name], size, args.samples, settings)
+        if isinstance(results["scenes"][name]["pinhole_vs_gsplat_db"], float):
+            print(f"  {name}: pinhole against gsplat "
+                  f"{results['scenes'][name]['pinhole_vs_gsplat_db']:.2f} dB", flush=True)
+        args.out.write_text(json.dumps(results, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

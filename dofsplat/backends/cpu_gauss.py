@@ -1,0 +1,168 @@
+"""The CPU pipeline of a Gaussian scene's frame (``dofsplat.gauss``), stage by stage:
+
+    project (footprint, colour, the lens's blur) -> sort by depth, bin to tiles ->
+    composite front to back -> background, to linear RGB
+
+With the lens in parts (``settings.lens_samples`` K > 1; ``frame.lens_parts``) the frame is
+K such passes, each seen from its part's centroid with the residual blur, averaged.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..jit import numba
+from ..camera import Camera
+from ..colors import linear_to_srgb, srgb_to_linear
+from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
+from ..gauss.composite import TILE, bin_tiles, composite_tiles, depth_order
+from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
+                             F_OPACITY, N_FIELDS, intrinsics,
+                             project_gaussians, view_matrix)
+from ..gaussians import Gaussians
+from ..splat.subaperture import aperture_second_moment
+
+NO_SHARE = np.zeros(0, np.float32)  # project_gaussians: no lens visibility
+NO_SEEN = np.zeros((0, 0), np.float32)  # composite_tiles: no visible alpha kept
+SHARE_SEEN = 0.05  # lens_visibility: a Gaussian seen this much (a share of its footprint) counts as seen
+BLURS = {"ours": BLUR_OURS, "viewers": BLUR_VIEWERS}
+
+
+def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
+                         settings: RenderSettings) -> RenderResult:
+    """A frame of a Gaussian scene (``render`` dispatches here); ``settings.gaussian_blur``
+    picks ours or the viewers' blur (``gauss/project.py``)."""
+    t0 = time.perf_counter()
+    blur = settings.gaussian_blur
+    parts = lens_parts(camera, lens, settings)
+    share = None
+    if blur == "ours" and coc_coefficients(camera, lens, settings)[0] > 0.0:
+        share = lens_visibility(scene, camera, lens, settings)
+    if parts is None:
+        color, trans, depth, stats = draw_gaussians(scene, camera, lens, settings, blur, share)
+    else:
+        color = np.zeros((camera.height, camera.width, 3), np.float64)
+        trans = np.zeros((camera.height, camera.width), np.float64)
+        depth = np.full((camera.height, camera.width), np.inf, np.float32)
+        stats = {"splats_rendered": 0, "fragments": 0}
+        for cam in parts.cameras:
+            c, t, d, s = draw_gaussians(scene, cam, parts.residual, settings, blur, share)
+            color += c
+            trans += t
+            np.minimum(depth, d, out=depth)
+            for key in stats:
+                stats[key] += s[key]
+        color, trans = color / len(parts.cameras), trans / len(parts.cameras)
+    image = to_linear_rgba(color, trans, settings.background)
+    stats.update(points_in=len(scene), width=camera.width, height=camera.height,
+                 total_ms=(time.perf_counter() - t0) * 1000.0)
+    alpha = image[..., 3].copy()
+    return RenderResult(image=image, depth=depth, weight=alpha, stats=stats)
+
+
+def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
+                   blur: str = "ours", share=None):
+    """One pass: (color (H, W, 3), transmittance (H, W), depth (H, W), stats). share: the
+    Gaussians' ``lens_visibility``, or None."""
+    stats = {}
+    t = time.perf_counter()
+    rows, boxes, visible = project(scene, camera, lens, settings, blur, share)
+    stats["project_ms"] = _ms(t)
+    t = time.perf_counter()
+    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
+    offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
+    stats["sort_ms"] = _ms(t)
+    t = time.perf_counter()
+    h, w = camera.height, camera.width
+    color = np.empty((h, w, 3), np.float32)
+    trans = np.empty((h, w), np.float32)
+    depth = np.empty((h, w), np.float32)
+    composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, color, trans, depth, NO_SEEN)
+    stats["composite_ms"] = _ms(t)
+    stats["splats_rendered"] = int(np.count_nonzero(visible))
+    stats["fragments"] = int(ids.shape[0]) * TILE * TILE  # tile-Gaussian pairs x pixels
+    return color, trans, depth, stats
+
+
+def project(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
+            blur: str = "ours", share=None):
+    """(rows (N, N_FIELDS) float32, boxes (N, 4) int32, visible (N,) bool): ``project_gaussians``
+    for this camera and lens (share: ``lens_visibility``'s, or None)."""
+    n = len(scene)
+    rows = np.empty((n, N_FIELDS), np.float32)
+    boxes = np.zeros((n, 4), np.int32)
+    visible = np.zeros(n, np.bool_)
+    fx, fy, cx, cy = intrinsics(camera)
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    mode = BLURS[blur] if coc_k > 0.0 else BLUR_NONE
+    project_gaussians(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
+                      view_matrix(camera), np.asarray(camera.eye, np.float64), fx, fy, cx, cy,
+                      camera.width, camera.height, camera.near if camera.frustum is None
+                      else camera.frustum[4], 1e10, EPS2D, settings.gaussian_antialiased,
+                      mode, coc_k, inv_focus, blur_variance(lens),
+                      NO_SHARE if share is None else share, rows, boxes, visible)
+    return rows, boxes, visible
+
+
+def blur_variance(lens) -> float:
+    """The lens blur's variance per axis at C_r = 1 px: half the aperture's second moment
+    (a disc's 1/4, a polygon's), or the paper's Gaussian bokeh's 1 / (2 ln 4)."""
+    if lens is None:
+        return 0.0
+    return 0.5 * aperture_second_moment(getattr(lens, "bokeh", "gaussian"),
+                                        getattr(lens, "blades", 0))
+
+
+def to_linear_rgba(color, trans, background) -> np.ndarray:
+    """(H, W, 4) float32: the composite over the background in the trainer's colour space
+    (the background, given in linear RGB, encoded to it), decoded to linear RGB, and alpha
+    1 - T: so that the image written (encoded again) holds the trainer's values."""
+    bg = linear_to_srgb(np.asarray(background, np.float64))
+    rgb = np.asarray(color, np.float64) + np.asarray(trans, np.float64)[..., None] * bg
+    out = np.empty(trans.shape + (4,), np.float32)
+    out[..., :3] = srgb_to_linear(np.clip(rgb, 0.0, 1.0))
+    out[..., 3] = 1.0 - trans
+    return out
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
+def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
+                    views: int = 6, scale: int = 2) -> np.ndarray:
+    """(N,) float32 in [0, 1]: how much of each Gaussian the lens sees. The largest share of
+    its alpha that is visible (alpha T summed over pixels, over its footprint's integral) in
+    pinhole views from the lens centre and ``views`` points on the lens's rim, at 1/scale
+    the resolution, over SHARE_SEEN, at most 1: what no view sees is 0, what some view sees
+    a twentieth of or more is 1 (docs/maths.md, "Gaussian scenes": a surface's overlapping
+    Gaussians each see a part of their footprint, and scaling them by that part left the
+    surface too thin; only the hidden ones are to go)."""
+    from ..camera import effective_diameter, lens_camera
+
+    small = Camera(eye=camera.eye, target=camera.target, up=camera.up,
+                   width=max(1, camera.width // scale), height=max(1, camera.height // scale),
+                   fov_y=camera.fov_y, frustum=camera.frustum, near=camera.near)
+    radius = 0.5 * effective_diameter(camera, lens)
+    offsets = [(0.0, 0.0)] + [(radius * math.cos(2 * math.pi * k / views),
+                               radius * math.sin(2 * math.pi * k / views)) for k in range(views)]
+    best = np.zeros(len(scene), np.float32)
+    for o in offsets:
+        cam = lens_camera(small, o, float(lens.focus_distance)) if o != (0.0, 0.0) else small
+        rows, boxes, visible = project(scene, cam, None, settings)
+        n_tx, n_ty = -(-cam.width // TILE), -(-cam.height // TILE)
+        offsets_, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
+        h, w = cam.height, cam.width
+        seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
+        composite_tiles(rows, boxes, offsets_, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
+                        np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
+        # a footprint's integral: o 2 pi sqrt(det cov2d), det cov2d = 1 / det conic
+        idx = np.flatnonzero(visible)
+        r = rows[idx].astype(np.float64)
+        energy = r[:, F_OPACITY] * 2.0 * np.pi / np.sqrt(r[:, F_CA] * r[:, F_CC] - r[:, F_CB] ** 2)
+        share = np.minimum(seen[:, idx].sum(axis=0) / energy, 1.0)
+        best[idx] = np.maximum(best[idx], share)
+    return np.minimum(best / SHARE_SEEN, 1.0).astype(np.float32)

@@ -1,0 +1,67 @@
+"""Real spherical harmonics of degree 0-3: the colour of a Gaussian seen from a direction.
+
+The basis, its order and its signs are 3DGS's (Kerbl et al. 2023, ``sh_utils.py``; gsplat's
+``spherical_harmonics``): for the unit direction d = (x, y, z) from the camera centre to the
+Gaussian's centre, colour = max(0, 0.5 + sum_k Y_k(d) c_k) per channel, in the trainer's
+colour space. The constants are the normalisations sqrt((2l+1)/(4 pi) (l-m)!/(l+m)!) of
+the real harmonics (times sqrt(2) for m != 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..jit import numba
+
+C0 = 0.28209479177387814  # 1 / (2 sqrt(pi))
+C1 = 0.4886025119029199  # sqrt(3 / (4 pi))
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+      0.5462742152960396)
+C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def sh_basis(x, y, z, out):
+    """The K values Y_0..Y_{K-1}(x, y, z) into out (K = len(out) in 1, 4, 9, 16)."""
+    k = out.shape[0]
+    out[0] = C0
+    if k > 1:
+        out[1] = -C1 * y
+        out[2] = C1 * z
+        out[3] = -C1 * x
+    if k > 4:
+        xx, yy, zz = x * x, y * y, z * z
+        out[4] = C2[0] * x * y
+        out[5] = C2[1] * y * z
+        out[6] = C2[2] * (2.0 * zz - xx - yy)
+        out[7] = C2[3] * x * z
+        out[8] = C2[4] * (xx - yy)
+        if k > 9:
+            out[9] = C3[0] * y * (3.0 * xx - yy)
+            out[10] = C3[1] * x * y * z
+            out[11] = C3[2] * y * (4.0 * zz - xx - yy)
+            out[12] = C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+            out[13] = C3[4] * x * (4.0 * zz - xx - yy)
+            out[14] = C3[5] * z * (xx - yy)
+            out[15] = C3[6] * x * (xx - 3.0 * yy)
+
+
+def sh_basis_numpy(dirs: np.ndarray, k: int) -> np.ndarray:
+    """(M, K) float64: the basis at unit directions (M, 3), written from the closed forms in
+    Cartesian coordinates (the slow twin of ``sh_basis``)."""
+    d = np.asarray(dirs, np.float64)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    cols = [np.full_like(x, C0)]
+    if k > 1:
+        cols += [-C1 * y, C1 * z, -C1 * x]
+    if k > 4:
+        cols += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * z * z - x * x - y * y),
+                 C2[3] * x * z, C2[4] * (x * x - y * y)]
+    if k > 9:
+        cols += [C3[0] * y * (3 * x * x - y * y), C3[1] * x * y * z,
+                 C3[2] * y * (4 * z * z - x * x - y * y),
+                 C3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y),
+                 C3[4] * x * (4 * z * z - x * x - y * y), C3[5] * z * (x * x - y * y),
+                 C3[6] * x * (x * x - 3 * y * y)]
+    return np.stack(cols, axis=1)

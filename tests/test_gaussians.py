@@ -1,0 +1,263 @@
+"""The Gaussian-scene stages (``dofsplat.gauss``): spherical harmonics against their closed
+forms and their orthonormality, one Gaussian's footprint and integral, two Gaussians'
+order, the fast kernels against the numpy twins (``gauss/slow.py``), and the lens."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import dofsplat as ds
+from dofsplat.backends.cpu_gauss import blur_variance, project
+from dofsplat.gauss import slow
+from dofsplat.gauss.project import (F_CA, F_CB, F_CC, F_DEPTH, F_OPACITY, F_X, F_Y,
+                                    intrinsics, view_matrix)
+from dofsplat.gauss.sh import sh_basis, sh_basis_numpy
+from dofsplat.gaussians import Gaussians
+from dofsplat.io import linear_to_srgb
+
+
+def scene(n=60, seed=1, degree=3, spread=0.5, opacity=(0.3, 1.0)):
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    return Gaussians(positions=rng.uniform(-spread, spread, (n, 3)),
+                     scales=rng.uniform(0.01, 0.08, (n, 3)),
+                     rotations=rng.normal(size=(n, 4)),
+                     opacity=rng.uniform(*opacity, n),
+                     sh=rng.normal(0, 0.4, (n, k, 3)))
+
+
+def camera(width=48, height=40, distance=2.5):
+    return ds.Camera(eye=(0.3, -0.2, distance), target=(0, 0, 0), width=width, height=height,
+                     fov_y=40.0, near=0.01)
+
+
+def unit_directions(n, seed=0):
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+# -- spherical harmonics -----------------------------------------------------------------
+
+def test_sh_basis_matches_the_general_formula():
+    """The kernel's closed forms against the associated-Legendre formula (slow.real_sh):
+    agreement to 1e-12 (float64 rounding of terms of size ~3)."""
+    dirs = unit_directions(200)
+    out = np.empty(16)
+    for d in dirs:
+        sh_basis(d[0], d[1], d[2], out)
+        np.testing.assert_allclose(out, slow.real_sh(d, 16), atol=1e-12)
+    np.testing.assert_allclose(sh_basis_numpy(dirs, 16),
+                               np.array([slow.real_sh(d, 16) for d in dirs]), atol=1e-12)
+
+
+def test_sh_basis_is_orthonormal_on_the_sphere():
+    """int Y_i Y_j dOmega = delta_ij, by a Gauss-Legendre x uniform-phi quadrature exact for
+    these degrees (products are polynomials of degree <= 6): a wrong constant or sign pattern
+    in the basis breaks it by far more than the 1e-10 allowed."""
+    nodes, weights = np.polynomial.legendre.leggauss(12)
+    phis = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    gram = np.zeros((16, 16))
+    for ct, w in zip(nodes, weights):
+        st = math.sqrt(1 - ct * ct)
+        dirs = np.stack([st * np.cos(phis), st * np.sin(phis), np.full_like(phis, ct)], 1)
+        y = sh_basis_numpy(dirs, 16)
+        gram += w * (2 * np.pi / len(phis)) * y.T @ y
+    np.testing.assert_allclose(gram, np.eye(16), atol=1e-10)
+
+
+# -- projection -------------------------------------------------------------------------
+
+def test_one_isotropic_gaussian_on_axis():
+    """An isotropic Gaussian of std s at depth z on the view axis: its footprint's
+    covariance is (f s / z)^2 + 0.3 px^2 per axis (no shear), its mean the image centre."""
+    s, z = 0.05, 2.0
+    g = Gaussians(positions=[[0, 0, 0]], scales=[[s, s, s]], rotations=[[1, 0, 0, 0]],
+                  opacity=[0.8], sh=np.zeros((1, 1, 3)))
+    cam = ds.Camera(eye=(0, 0, z), target=(0, 0, 0), width=64, height=48, fov_y=30, near=0.01)
+    rows, boxes, visible = project(g, cam, None, ds.RenderSettings())
+    fx, fy, cx, cy = intrinsics(cam)
+    var = (fx * s / z) ** 2 + 0.3
+    assert visible[0]
+    assert rows[0, F_X] == pytest.approx(32.0, abs=1e-4)
+    assert rows[0, F_Y] == pytest.approx(24.0, abs=1e-4)
+    assert rows[0, F_DEPTH] == pytest.approx(z, rel=1e-6)
+    np.testing.assert_allclose(rows[0, [F_CA, F_CB, F_CC]], [1 / var, 0, 1 / var], rtol=1e-5,
+                               atol=1e-7)
+    assert rows[0, F_OPACITY] == pytest.approx(0.8, rel=1e-6)
+    # the box holds every pixel with alpha >= 1/255: radius sqrt(2 ln(0.8 * 255) var)
+    reach = math.sqrt(2 * math.log(0.8 * 255) * var)
+    assert boxes[0, 1] - boxes[0, 0] == pytest.approx(2 * reach, abs=2.0)
+
+
+def test_a_single_gaussians_image_integrates_to_its_footprint():
+    """The alpha image of one faint Gaussian (no clamp reached) integrates to
+    o 2 pi sqrt(det cov2d), less what the 1/255 cut leaves out: within 1 %."""
+    s, o = 0.04, 0.5
+    g = Gaussians(positions=[[0, 0, 0]], scales=[[s, 2 * s, s]], rotations=[[1, 0, 0, 0]],
+                  opacity=[o], sh=np.zeros((1, 1, 3)))
+    cam = ds.Camera(eye=(0, 0, 2), target=(0, 0, 0), width=96, height=96, fov_y=30, near=0.01)
+    result = ds.render(g, cam, None, ds.RenderSettings())
+    fx = intrinsics(cam)[0]
+    det = ((fx * s / 2) ** 2 + 0.3) * ((fx * 2 * s / 2) ** 2 + 0.3)
+    # the cut at alpha = 1/255 keeps s <= s* = ln(255 o); in 2-D the area between s and
+    # s + ds is 2 pi sqrt(det) ds, so the part kept is 1 - e^-s* of the whole integral
+    kept = 1 - math.exp(-math.log(255 * o))
+    expected = o * 2 * math.pi * math.sqrt(det) * kept
+    assert result.alpha.sum() == pytest.approx(expected, rel=0.01)
+
+
+def test_two_gaussians_composite_in_depth_order():
+    """A red Gaussian in front of a blue one: the centre pixel is red a1 + blue a2 (1 - a1),
+    whichever order the scene lists them in."""
+    def pair(order):
+        pos = np.array([[0, 0, 0.5], [0, 0, 0.0]])[order]  # red is nearer the camera at z = 3
+        sh = np.zeros((2, 1, 3))
+        sh[0, 0] = np.array([0.5, -0.5, -0.5]) / 0.28209479177387814  # colour (1, 0, 0)
+        sh[1, 0] = np.array([-0.5, -0.5, 0.5]) / 0.28209479177387814  # colour (0, 0, 1)
+        return Gaussians(positions=pos, scales=np.full((2, 3), 0.2), rotations=[[1, 0, 0, 0]] * 2,
+                         opacity=np.array([0.6, 0.9])[order], sh=sh[order])
+
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=33, height=33, fov_y=30, near=0.01)
+    for order in ([0, 1], [1, 0]):
+        r = ds.render(pair(order), cam, None, ds.RenderSettings())
+        rgb = linear_to_srgb(r.rgb[16, 16].astype(np.float64))
+        fx = intrinsics(cam)[0]
+        # each Gaussian's peak at the centre pixel, whose centre is the image centre
+        a1, a2 = 0.6, 0.9
+        np.testing.assert_allclose(rgb, [a1, 0, a2 * (1 - a1)], atol=2e-3)
+
+
+def test_fast_kernels_match_the_slow_twins_pinhole_and_blurred():
+    """The numba projection and compositing against slow.project_one and slow.composite on a
+    random scene of 60 Gaussians with SH degree 3: to 2e-5 in colour (float32 rows against
+    float64), pinhole and with the lens's blur (ours and the viewers')."""
+    g = scene()
+    cam = camera()
+    fx, fy, cx, cy = intrinsics(cam)
+    view = view_matrix(cam)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.15)
+    for lens_, blur in ((None, "ours"), (lens, "ours"), (lens, "viewers")):
+        from dofsplat.backends.cpu_gauss import draw_gaussians
+
+        # what render() gives from backends.cpu_gauss.lens_visibility, here at random
+        share = np.random.default_rng(5).uniform(0, 1, len(g)).astype(np.float32)
+        colour, trans, _, _ = draw_gaussians(g, cam, lens_, ds.RenderSettings(), blur,
+                                             share if lens_ is not None else None)
+        footprints = []
+        for i in range(len(g)):
+            var = 0.0
+            if lens_ is not None:
+                coc = lens_.coc_radius_px(
+                    (view[:3, :3] @ g.positions[i] + view[:3, 3])[2], cam)
+                var = blur_variance(lens_) * coc ** 2 if blur == "ours" else coc ** 2
+            fp = slow.project_one(g.positions[i], g.scales[i], g.rotations[i], g.opacity[i],
+                                  g.sh[i], view, np.asarray(cam.eye), fx, fy, cx, cy,
+                                  cam.width, cam.height, var, spread_cut=blur == "ours",
+                                  share=share[i] if lens_ is not None and blur == "ours" else None)
+            if fp is not None and fp[3] >= fp[4]:
+                footprints.append(fp)
+        want_colour, want_trans = slow.composite(footprints, cam.width, cam.height)
+        np.testing.assert_allclose(colour, want_colour, atol=2e-5, err_msg=blur)
+        np.testing.assert_allclose(trans, want_trans, atol=2e-5, err_msg=blur)
+
+
+def test_blur_spreads_opacity_and_keeps_energy():
+    """With the lens, a Gaussian's alpha image keeps its integral (the opacity spread over
+    the wider footprint): within 2 % of the pinhole's, at CoCs of 3 and 8 px."""
+    g = Gaussians(positions=[[0, 0, 0]], scales=[[0.02, 0.02, 0.02]], rotations=[[1, 0, 0, 0]],
+                  opacity=[0.9], sh=np.zeros((1, 1, 3)))
+    cam = ds.Camera(eye=(0, 0, 2), target=(0, 0, 0), width=96, height=96, fov_y=30, near=0.01)
+    sharp = ds.render(g, cam, None, ds.RenderSettings()).alpha.sum()
+    for aperture in (0.05, 0.13):
+        lens = ds.ThinLens(focus_distance=1.0, aperture=aperture)
+        blurred = ds.render(g, cam, lens, ds.RenderSettings()).alpha.sum()
+        assert blurred == pytest.approx(sharp, rel=0.02), aperture
+
+
+# -- against gsplat ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("stored, scene_path", [
+    ("gsplat_fruit_drops.npz", "gaussian_scenes/fruit_drops_minimal.ply"),
+    ("gsplat_donut.npz", "gaussian_donut/fused.ply"),
+])
+def test_pinhole_matches_gsplats_image(stored, scene_path):
+    """The pinhole frame against gsplat 1.5.3's image of the same Gaussians and camera
+    (stored by bench/gsplat_peer.py; its command is in the file's meta): >= 45 dB PSNR on
+    the displayed values (issue 48's target; what remains is float32 order and the exp
+    approximation and the float16 storage: measured 79.6 and 83.5 dB)."""
+    import json
+
+    from conftest import SHARED_DATA
+    from dofsplat.io import load
+    from dofsplat.metrics import _psnr
+
+    path = SHARED_DATA / scene_path
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path}")
+    ref = np.load(Path(__file__).parent / "data" / stored)
+    meta = json.loads(str(ref["meta"]))
+    c = meta["camera"]
+    cam = ds.Camera(eye=c["eye"], target=c["target"], up=c["up"], width=c["width"],
+                    height=c["height"], fov_y=c["fov_y"], near=c["near"])
+    scene = load(path)
+    assert isinstance(scene, Gaussians) and len(scene) == meta["gaussians"]
+    ours = ds.render(scene, cam, None, ds.RenderSettings())
+    want = np.clip(ref["image"].astype(np.float64), 0, 1)
+    got = linear_to_srgb(ours.rgb.astype(np.float64))
+    assert _psnr(got, want) >= 45.0
+    np.testing.assert_allclose(ours.alpha, ref["alpha"].astype(np.float32), atol=5e-3)
+
+
+def sheet_and_hidden(hidden_z=-0.3, hidden_offset=0.0):
+    """A wide opaque sheet of 15 x 15 Gaussians at z = 0 and one small red Gaussian behind it
+    (or in front of it, hidden_z > 0; offset in x)."""
+    g = np.linspace(-0.7, 0.7, 15)
+    x, y = np.meshgrid(g, g)
+    n = x.size
+    pos = np.concatenate([np.stack([x.ravel(), y.ravel(), np.zeros(n)], 1),
+                          [[hidden_offset, 0.0, hidden_z]]])
+    scales = np.concatenate([np.tile([0.1, 0.1, 0.01], (n, 1)), [[0.03, 0.03, 0.03]]])
+    sh = np.zeros((n + 1, 1, 3))
+    sh[-1, 0] = np.array([0.5, -0.5, -0.5]) / 0.28209479177387814
+    return Gaussians(positions=pos, scales=scales, rotations=[[1, 0, 0, 0]] * (n + 1),
+                     opacity=np.r_[np.full(n, 0.99), 0.9], sh=sh)
+
+
+def test_lens_visibility_finds_what_the_whole_lens_cannot_see():
+    """A Gaussian behind the middle of an opaque sheet is hidden from every point of the lens:
+    its visible share is 0 (below 1e-3: the sheet lets 4e-4 through between its Gaussians,
+    where the Gaussian behind it is fainter than the 1/255 cut); one in front of the sheet is
+    seen whole, less the 1/255 cut's 1/(255 o) = 0.4 % (above 0.99; 0.997 measured).'"""
+    from dofsplat.backends.cpu_gauss import lens_visibility
+
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40, near=0.01)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    hidden = lens_visibility(sheet_and_hidden(), cam, lens, ds.RenderSettings())
+    assert hidden[-1] < 1e-3
+    front = lens_visibility(sheet_and_hidden(hidden_z=0.5), cam, lens, ds.RenderSettings())
+    assert front[-1] > 0.99
+
+
+def test_a_hidden_gaussian_does_not_bleed_through_a_blurred_sheet():
+    """Focused far behind the sheet, the sheet is blurred by about 10 px; the red Gaussian
+    hidden behind its middle must not show through it (the truth: the 64-sample reference
+    shows no red there): the centre pixel's red excess stays below 0.01 where the viewers'
+    blur lets it through."""
+    import dataclasses
+
+    from dofsplat.reference import render_reference
+
+    scene = sheet_and_hidden()
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=64, height=64, fov_y=40, near=0.01)
+    lens = ds.ThinLens(focus_distance=6.0, aperture=1.4)
+    assert lens.coc_radius_px(3.0, cam) > 8
+    settings = ds.RenderSettings()
+    ref = render_reference(scene, cam, lens, settings, samples=64, progress=False)
+    ours = ds.render(scene, cam, lens, settings)
+    viewers = ds.render(scene, cam, lens, dataclasses.replace(settings, gaussian_blur="viewers"))
+    red = lambda r: float(r.rgb[32, 32, 0] - r.rgb[32, 32, 1])  # noqa: E731
+    assert red(ref) < 0.01
+    assert red(ours) < 0.01
+    assert red(viewers) > red(ours)
