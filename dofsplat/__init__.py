@@ -16,10 +16,11 @@ from .sequence import Keyframe, animate
 from .viewer import view
 from .shading import HEADLIGHT, Light
 from .surfels import Material, Surfels
+from .gaussians import Gaussians
 
 
 __all__ = [
     "Camera", "EyeLens", "ThinLens", "photographic", "DofsplatError", "RenderResult",
     "RenderSettings", "focus_distance_at", "render", "HEADLIGHT", "Light", "Material",
-    "Surfels", "__version__", "compare", "render_reference", "Keyframe", "animate", "view",
+    "Surfels", "Gaussians", "__version__", "compare", "render_reference", "Keyframe", "animate", "view",
 ]

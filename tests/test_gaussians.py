@@ -261,3 +261,32 @@ def test_a_hidden_gaussian_does_not_bleed_through_a_blurred_sheet():
     assert red(ref) < 0.01
     assert red(ours) < 0.01
     assert red(viewers) > red(ours)
+
+
+# -- the command line ---------------------------------------------------------------------
+
+def test_cli_renders_a_gaussian_scene_and_names_what_does_not_apply(tmp_path):
+    """`dofsplat render` on a 3DGS PLY: the default frame, the viewers' baseline; the surfel
+    post-filter and the GPU are refused with one line naming why (exit 2)."""
+    import subprocess
+
+    from conftest import SHARED_DATA
+
+    path = SHARED_DATA / "gaussian_donut" / "fused.ply"
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path}")
+
+    def run(*args):
+        return subprocess.run(["dofsplat", "render", str(path), "--size", "96x72", *args],
+                              capture_output=True, text=True, timeout=600)
+
+    ok = run("-o", str(tmp_path / "d.png"), "--aperture", "0.02")
+    assert ok.returncode == 0, ok.stderr
+    assert "45,624 points" in ok.stderr
+    assert (tmp_path / "d.png").stat().st_size > 1000
+    viewers = run("-o", str(tmp_path / "v.png"), "--method", "viewers")
+    assert viewers.returncode == 0, viewers.stderr
+    refused = run("-o", str(tmp_path / "p.png"), "--method", "postfilter")
+    assert refused.returncode == 2
+    assert "--method postfilter is for surfel models; this model is a Gaussian scene" in refused.stderr
+    assert not (tmp_path / "p.png").exists()

@@ -83,7 +83,9 @@ def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSetti
     composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, color, trans, depth, NO_SEEN)
     stats["composite_ms"] = _ms(t)
     stats["splats_rendered"] = int(np.count_nonzero(visible))
-    stats["fragments"] = int(ids.shape[0]) * TILE * TILE  # tile-Gaussian pairs x pixels
+    # the pixels of the drawn Gaussians' boxes: what the compositing may visit
+    box = boxes[visible].astype(np.int64)
+    stats["fragments"] = int(np.sum((box[:, 1] - box[:, 0]) * (box[:, 3] - box[:, 2])))
     return color, trans, depth, stats
 
 
