@@ -3,14 +3,16 @@
     project (footprint, colour, the lens's blur) -> sort by depth, bin to tiles ->
     composite front to back -> background, to linear RGB
 
-With the lens in parts (``settings.lens_samples`` K > 1; ``frame.lens_parts``) the frame is
-K such passes, each seen from its part's centroid with the residual blur, averaged.
+With the lens in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default,
+and ``lens_samples``; ``frame.lens_parts``) the frame is K such passes, each seen from its
+part's centroid with the residual blur, averaged.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -37,7 +39,8 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     picks ours or the viewers' blur (``gauss/project.py``)."""
     t0 = time.perf_counter()
     blur = settings.gaussian_blur
-    parts = lens_parts(camera, lens, settings)
+    k = max(settings.lens_samples, settings.gaussian_lens_samples)
+    parts = lens_parts(camera, lens, replace(settings, lens_samples=k))
     share = None
     if blur == "ours" and coc_coefficients(camera, lens, settings)[0] > 0.0:
         share = lens_visibility(scene, camera, lens, settings)
