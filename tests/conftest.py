@@ -6,13 +6,21 @@ import pytest
 
 import dofsplat as ds
 
+# DOFSPLAT_MAX_SKIPS: more skips than that fail the run (tests/skip_guard.py)
+from skip_guard import pytest_configure, pytest_sessionfinish, pytest_terminal_summary  # noqa: F401
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session", autouse=True)
 def _private_cache(tmp_path_factory):
     """Keep what the CLI caches out of the user's ~/.cache, and cache nothing unless a test
-    asks (a prepared model read back would skip the preparation a test is about)."""
+    asks (a prepared model read back would skip the preparation a test is about). The
+    compiled kernels stay in the user's kernel folder (``dofsplat.jit``), for this process
+    and the CLI's subprocesses: a fresh folder would compile them again in every run."""
+    from dofsplat.jit import kernel_cache_folder
+
+    os.environ.setdefault("DOFSPLAT_KERNEL_DIR", str(kernel_cache_folder()))
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))
     os.environ["DOFSPLAT_CACHE_MAX"] = "0"
 

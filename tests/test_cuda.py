@@ -3,9 +3,12 @@
 The parity tests run on a GPU where one works, or on numba's CUDA simulator with
 ``DOFSPLAT_TEST_CUDASIM=1`` (every CUDA thread is a Python thread there: the scenes are
 tiny), and are skipped otherwise; ``DOFSPLAT_REQUIRE_CUDA=1`` turns that skip into an error
-(for the GPU machine). The device-choice and CLI tests run everywhere.
+(for the GPU machine). They are marked ``cuda``: tests/run.sh (CI) runs a selection of them
+on the simulator, which must launch every kernel of backends/cuda.py (the last parity test
+checks). The device-choice and CLI tests run everywhere.
 """
 
+import ast
 import os
 import subprocess
 import sys
@@ -33,10 +36,56 @@ GPU = _PROBLEM is None and not SIMULATOR
 if _PROBLEM is not None and os.environ.get("DOFSPLAT_REQUIRE_CUDA") == "1":
     # on the GPU machine a broken setup must fail, not skip
     raise RuntimeError(f"DOFSPLAT_REQUIRE_CUDA=1 but the CUDA backend cannot run: {_PROBLEM}")
-needs_cuda = pytest.mark.skipif(
+_skip_without_cuda = pytest.mark.skipif(
     _PROBLEM is not None,
     reason=f"no CUDA GPU here ({_PROBLEM}); DOFSPLAT_TEST_CUDASIM=1 runs these tests on "
            "numba's CUDA simulator")
+
+
+def needs_cuda(test):
+    """Skipped without a GPU or the simulator; marked ``cuda``, which tests/run.sh's simulator
+    step selects and tests/skip_guard.py counts apart."""
+    return pytest.mark.cuda(_skip_without_cuda(test))
+
+
+# -- which kernels the tests launch ---------------------------------------------------------
+
+LAUNCHED: set[str] = set()  # names of backends/cuda.py's kernels launched in this module
+
+
+def _kernel_names(module) -> list[str]:
+    """The kernels of a module: its functions decorated with a bare ``@cuda.jit`` (device
+    functions take ``@cuda.jit(device=True)``)."""
+    tree = ast.parse(Path(module.__file__).read_text(encoding="utf-8"))
+    return [f.name for f in tree.body if isinstance(f, ast.FunctionDef)
+            and any(ast.unparse(d) == "cuda.jit" for d in f.decorator_list)]
+
+
+class _Noted:
+    """A kernel that notes its name in LAUNCHED when launched (``kernel[grid, block](...)``)."""
+
+    def __init__(self, name, kernel):
+        self.name, self.kernel = name, kernel
+
+    def __getitem__(self, launch_config):
+        LAUNCHED.add(self.name)
+        return self.kernel[launch_config]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _note_launches():
+    """Wrap backends/cuda.py's kernels for this module (the host code looks them up as
+    module globals at each launch): test_every_kernel_was_launched reads LAUNCHED."""
+    if _PROBLEM is not None:
+        yield
+        return
+    from dofsplat.backends import cuda as bc
+
+    with pytest.MonkeyPatch.context() as mp:
+        for name in _kernel_names(bc):
+            mp.setattr(bc, name, _Noted(name, getattr(bc, name)))
+        yield
+
 
 # Parity tolerances (issue 6): both backends run the same float64 maths; they differ only in
 # rounding (exp(-q) per pixel on the GPU, forward differences along a row on the CPU: ~1e-15
@@ -305,6 +354,28 @@ def test_device_copies_follow_the_model():
     assert bc.device_scene(a) is scene_a
     b = grid_surfels(n=4, color=(0.1, 0.9, 0.1))
     np.testing.assert_allclose(bc.device_scene(b).source.colors.copy_to_host(), b.colors)
+
+
+@needs_cuda
+def test_probe_kernel_writes_one():
+    """The kernel ``backends.cuda_problem`` runs on a GPU (it answers without it in the
+    simulator)."""
+    from dofsplat.backends import cuda as bc
+
+    out = bc.cuda.to_device(np.zeros(1, np.float64))
+    bc.probe_kernel[1, 1](out)
+    assert out.copy_to_host()[0] == 1.0
+
+
+@needs_cuda
+def test_every_kernel_was_launched():
+    """The tests above (run before this one, in file order) launch every kernel of
+    backends/cuda.py: tests/run.sh's simulator step runs a selection of them that must."""
+    from dofsplat.backends import cuda as bc
+
+    kernels = _kernel_names(bc)
+    assert len(kernels) >= 15  # the parse found them (19 in November 2026)
+    assert not set(kernels) - LAUNCHED, sorted(set(kernels) - LAUNCHED)
 
 
 # -- the device choice and the CLI (everywhere) -----------------------------------------------
