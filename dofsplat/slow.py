@@ -20,12 +20,205 @@ import math
 import numpy as np
 
 from .camera import Camera
-from .splat.ewa import BOX_SLACK, BOX_SLACK_REL, MAX_SPLAT_VARIANCE, SMALL_APERTURE
-from .frame import RenderSettings, coc_coefficients
+from .frame import RenderSettings
 from .splat.source import from_surfels
 from .surfels import Surfels, tangent_frame
 
 LN4 = math.log(4.0)
+
+# -- the twins' own constants ------------------------------------------------------------
+# Written out here, never imported from the code the twins check: a constant changed in a
+# kernel's module is then a difference between the kernels and their twins, which the
+# comparisons find (an imported MERGE_REACH of 2, or SMALL_APERTURE of 4, passed every
+# twin comparison: issue 52). ``TWIN_CONSTANTS`` names where each lives in the kernels'
+# code, and tests/test_render.py checks that the two agree, so that a change made on
+# purpose is made in both places.
+SMALL_APERTURE = 1.0  # an aperture radius under this x the kernel's least sigma: its Gaussian
+MAX_SPLAT_VARIANCE = 1.0e16  # px^2: a wider splat is dropped
+BOX_SLACK, BOX_SLACK_REL = 1e-3, 1e-6  # px, and x (reach + |coordinate|): float32's slack
+EXACT_NORMALISATION_MAX_AREA = 16384  # px: boxes up to this many pixels are summed
+MAX_SURFACES = 8  # surfaces per pixel in the A-buffer
+OPAQUE = 0.95  # a fragment at least this opaque hides what lies behind it (the front pass)
+FRONT_CUTOFF = 2.0  # the front pass's unblurred disk: 1/2 x^T F^-1 x < FRONT_CUTOFF
+FRONT_MARGIN = 128  # px of front map round the image
+COVER_FULL, COVER_KNEE, COVER_SHARP_PX = 0.9, 0.85, 1.0  # a sharp surface covers its pixel
+BLUR_COVER_KNEE, BLUR_COVER_FULL = 0.95, 0.98  # ... and a blurred one
+MERGE_RHO0, MERGE_RHO1 = 0.15, 0.5  # the merge band of the parallax ratio rho
+VIS_SAMPLES = 9  # a splat's visibility: its centre and 8 points of its 1-sigma ellipse
+LENS_POINTS, LENS_RING, LENS_MARGIN = 4, 1.0, 2.0  # looks through the lens from each
+HIDDEN_H0 = 0.9  # the share of hidden looks from which a splat is removed
+MERGE_REACH = 6.0  # a surface's depths reach this x (its CoC + 1 px) along its tangent plane
+B_MAX, TABLE_B, TABLE_U = 8.0, 65, 321  # the aperture table's b range and grid
+MASS_E, MASS_V, MASS_E_MIN = 49, 65, 1.0 / 1024.0  # the disc's mass table
+MASS_ANGLES, MASS_TABLE_ANGLES = 16, 128  # directions per family of the mass quadrature
+
+# where each constant lives in the kernels' code: {twin name: "module:NAME"}
+TWIN_CONSTANTS = {
+    "SMALL_APERTURE": "dofsplat.splat.ewa:SMALL_APERTURE",
+    "MAX_SPLAT_VARIANCE": "dofsplat.splat.ewa:MAX_SPLAT_VARIANCE",
+    "BOX_SLACK": "dofsplat.splat.ewa:BOX_SLACK",
+    "BOX_SLACK_REL": "dofsplat.splat.ewa:BOX_SLACK_REL",
+    "EXACT_NORMALISATION_MAX_AREA": "dofsplat.splat.project:EXACT_NORMALISATION_MAX_AREA",
+    "MAX_SURFACES": "dofsplat.raster.abuffer:MAX_SURFACES",
+    "OPAQUE": "dofsplat.raster.abuffer:OPAQUE",
+    "FRONT_CUTOFF": "dofsplat.raster.abuffer:FRONT_CUTOFF",
+    "FRONT_MARGIN": "dofsplat.raster.abuffer:FRONT_MARGIN",
+    "COVER_FULL": "dofsplat.raster.abuffer:COVER_FULL",
+    "COVER_KNEE": "dofsplat.raster.abuffer:COVER_KNEE",
+    "COVER_SHARP_PX": "dofsplat.raster.abuffer:COVER_SHARP_PX",
+    "BLUR_COVER_KNEE": "dofsplat.raster.abuffer:BLUR_COVER_KNEE",
+    "BLUR_COVER_FULL": "dofsplat.raster.abuffer:BLUR_COVER_FULL",
+    "MERGE_RHO0": "dofsplat.raster.abuffer:MERGE_RHO0",
+    "MERGE_RHO1": "dofsplat.raster.abuffer:MERGE_RHO1",
+    "VIS_SAMPLES": "dofsplat.raster.abuffer:VIS_SAMPLES",
+    "LENS_POINTS": "dofsplat.raster.abuffer:LENS_POINTS",
+    "LENS_RING": "dofsplat.raster.abuffer:LENS_RING",
+    "LENS_MARGIN": "dofsplat.raster.abuffer:LENS_MARGIN",
+    "HIDDEN_H0": "dofsplat.raster.abuffer:HIDDEN_H0",
+    "MERGE_REACH": "dofsplat.raster.abuffer:MERGE_REACH",
+    "B_MAX": "dofsplat.splat.bokeh:B_MAX",
+    "TABLE_B": "dofsplat.splat.bokeh:TABLE_B",
+    "TABLE_U": "dofsplat.splat.bokeh:TABLE_U",
+    "MASS_E": "dofsplat.splat.bokeh:MASS_E",
+    "MASS_V": "dofsplat.splat.bokeh:MASS_V",
+    "MASS_E_MIN": "dofsplat.splat.bokeh:MASS_E_MIN",
+    "MASS_ANGLES": "dofsplat.splat.bokeh:MASS_ANGLES",
+    "MASS_TABLE_ANGLES": "dofsplat.splat.bokeh:MASS_TABLE_ANGLES",
+}
+
+
+# -- the frame's parameters, from their definitions --------------------------------------
+
+
+def coc_coefficients_reference(camera: Camera, lens, settings: RenderSettings):
+    """(K, 1/P) of C_r(U) = K |1/U - 1/P| (the lens's own, camera.py); (0, 0) for a pinhole
+    or with ``dof`` off."""
+    if lens is None or not settings.dof:
+        return 0.0, 0.0
+    return lens.coc_coefficients(camera)
+
+
+def merge_parameters_reference(camera: Camera, lens, settings: RenderSettings):
+    """(K, 1/P, rho0, rho1) of the soft merge (frame.merge_parameters): K = -1 for the
+    paper's reconstruction (its "over" and min(1, w)), 0 for a pinhole."""
+    if settings.reconstruction == "paper":
+        return -1.0, 0.0, MERGE_RHO0, MERGE_RHO1
+    return (*coc_coefficients_reference(camera, lens, settings), MERGE_RHO0, MERGE_RHO1)
+
+
+def blade_normals_reference(blades: int, rotation_deg: float) -> np.ndarray:
+    """(N, 2) unit normals of a regular N-gon's edges, pixels (x right, y down): the first
+    vertex at the rotation angle, each edge's normal halfway between its two vertices."""
+    if blades == 0:
+        return np.zeros((0, 2))
+    vertex = [math.radians(rotation_deg) + i * 2 * math.pi / blades for i in range(blades + 1)]
+    mid = [(a + b) / 2 for a, b in zip(vertex[:-1], vertex[1:])]
+    return np.array([[math.cos(a), -math.sin(a)] for a in mid])  # y down: the sine turns
+
+
+def aperture_shape_reference(lens, settings: RenderSettings):
+    """(disc, blades, moments): whether kernels carry the aperture's shape (a lens with
+    ``bokeh="disc"`` in a frame with ``dof``), its edge normals ((0, 2): round) and the
+    twin's own moments and mass table (``aperture_moments_reference``)."""
+    disc = lens is not None and settings.dof and getattr(lens, "bokeh", "gaussian") == "disc"
+    if not disc:
+        return False, np.zeros((0, 2)), np.zeros((1, 1))
+    return (True, blade_normals_reference(lens.blades, lens.blade_rotation),
+            aperture_moments_reference(settings.cutoff))
+
+
+def aperture_variance_reference(lens) -> float:
+    """The aperture image's variance per axis at radius 1: E|u|^2 / 2 over the disc (1/4)
+    or the regular n-gon of circumradius 1 ((1 + 2 cos^2(pi/n)) / 12: its n triangles of
+    height cos(pi/n) and half-base sin(pi/n)); 1/4 where no kernel carries the aperture."""
+    n = getattr(lens, "blades", 0) if lens is not None else 0
+    if lens is None or getattr(lens, "bokeh", "gaussian") != "disc" or n == 0:
+        return 0.25
+    h, s = math.cos(math.pi / n), math.sin(math.pi / n)
+    # a triangle's E|u|^2 from the centre: h^2 / 2 + s^2 / 6 (the apex at the centre)
+    return (h * h / 2 + s * s / 6) / 2
+
+
+def kernel_floor_reference(settings: RenderSettings) -> float:
+    """A tapered kernel's floor: e^-c with ``taper``, else 0."""
+    return math.exp(-settings.cutoff) if settings.taper else 0.0
+
+
+_TWIN_TABLES: dict = {}
+
+
+def disc_convolution(u, b, nodes: int = 160):
+    """T(u, b) = (G * disc_b)(d) / (G * disc_b)(0), d = max(u + b, 0), by Gauss-Legendre
+    quadrature of its definition: a unit 2-D Gaussian G and the uniform disc of radius b > 0
+    (splat/bokeh.py's module notes). In polar coordinates about the disc's centre,
+
+        (G * disc_b)(d) = int_0^b r exp(-(r^2 + d^2) / 2) I0(r d) dr,
+
+    and at d = 0 that is 1 - exp(-b^2 / 2). I0(x) = i0e(x) e^x keeps the exponent
+    -(r - d)^2 / 2 finite. u, b: arrays that broadcast; b > 0."""
+    from scipy.special import i0e
+
+    x, w = np.polynomial.legendre.leggauss(nodes)
+    u, b = np.broadcast_arrays(np.asarray(u, float), np.asarray(b, float))
+    d = np.maximum(u + b, 0.0)[..., None]
+    half = (b / 2)[..., None]
+    r = half * (x + 1)  # the nodes on [0, b]
+    integrand = r * np.exp(-0.5 * (r - d) ** 2) * i0e(r * d)
+    return np.sum(w * integrand, axis=-1) * half[..., 0] / -np.expm1(-0.5 * b * b)
+
+
+def aperture_table_reference(cutoff: float) -> np.ndarray:
+    """(TABLE_B, TABLE_U): the tapered T(u, b) on the aperture table's grid (b from 0 to
+    B_MAX, u from -B_MAX to the cutoff sqrt(2c)), from ``disc_convolution``; the Gaussian
+    exp(-d^2 / 2) at b = 0. The taper: T - s(b) T(sqrt(2c), b), s = smoothstep(b; 0, 1),
+    so that a blurred kernel falls to 0 at its cutoff while an unblurred one (b = 0) stays
+    the paper's truncated Gaussian."""
+    key = ("table", float(cutoff))
+    if key not in _TWIN_TABLES:
+        u_c = math.sqrt(2 * cutoff)
+        b = np.linspace(0, B_MAX, TABLE_B)
+        u = np.linspace(-B_MAX, u_c, TABLE_U)
+        table = np.empty((TABLE_B, TABLE_U))
+        table[0] = np.exp(-0.5 * np.maximum(u, 0.0) ** 2)
+        t = np.clip(disc_convolution(u[None, :], b[1:, None]), 0.0, 1.0)
+        x = np.minimum(b[1:], 1.0)
+        smooth = x * x * (3 - 2 * x)
+        table[1:] = np.maximum(t - smooth[:, None] * t[:, -1:], 0.0)
+        _TWIN_TABLES[key] = table
+    return _TWIN_TABLES[key]
+
+
+def aperture_moments_reference(cutoff: float) -> np.ndarray:
+    """(TABLE_B + MASS_E, MASS_V), laid out as bokeh.aperture_moments: per column b of the
+    twin's table, I0(b) = int T du and I1(b) = int T u du over u in [-b, sqrt(2c)] (the
+    table's linear interpolation, integrated on a fine grid) and T(-B_MAX, b); below them
+    the disc's mass over pi (R^2 + 2 sqrt|W|) for W = diag(1, e), e = MASS_E_MIN^(k /
+    (MASS_E - 1)), and R = sigma (1 / v - 1), v = max(j / (MASS_V - 1), 1e-4), sigma^2 =
+    (1 + e) / 2, by ``aperture_mass_reference``'s quadrature with MASS_TABLE_ANGLES
+    directions per family."""
+    key = ("moments", float(cutoff))
+    if key not in _TWIN_TABLES:
+        table = aperture_table_reference(cutoff)
+        u_c = math.sqrt(2 * cutoff)
+        u = np.linspace(-B_MAX, u_c, TABLE_U)
+        moments = np.zeros((TABLE_B + MASS_E, MASS_V))
+        trapezoid = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 has only trapz
+        for k, b in enumerate(np.linspace(0, B_MAX, TABLE_B)):
+            uu = np.linspace(-b, u_c, 20001)
+            t = np.interp(uu, u, table[k])
+            moments[k, :3] = trapezoid(t, uu), trapezoid(t * uu, uu), table[k, 0]
+        for k in range(MASS_E):
+            e = MASS_E_MIN ** (k / (MASS_E - 1))
+            sigma = math.sqrt((1 + e) / 2)
+            for j in range(MASS_V):
+                v = max(j / (MASS_V - 1), 1e-4)
+                r = sigma * (1 / v - 1)
+                mix = r * r / (r * r + (1 + e) / 2)
+                mass = aperture_mass_reference(np.diag([1.0, e]), r, mix, np.zeros((0, 2)),
+                                               moments, family=MASS_TABLE_ANGLES)
+                moments[TABLE_B + k, j] = mass / (math.pi * (r * r + 2 * math.sqrt(e)))
+        _TWIN_TABLES[key] = moments
+    return _TWIN_TABLES[key]
 
 
 def circumellipse_eig(m, r):
@@ -77,16 +270,15 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     each node's tangent frame, lod/hierarchy.py) and gain (N, 3) the shading's factor on
     the colour: a node's colour slope is then Cov(colour, screen position) W_total^-1.
     """
-    from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH,
-                                EXACT_NORMALISATION_MAX_AREA, F11, F12, F22, FLOOR, GREEN, GX,
-                                GY, GZX, GZY, MIX, MX, MY, N_FIELDS, RAD, REACH, RED, RX, RY, X0,
-                                X1, ZHI, ZLO)
-    from .frame import aperture_shape, aperture_variance, kernel_floor
+    # (the row's layout, not its maths: a wrong field index fails every comparison)
+    from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, COC, DEPTH, F11, F12,
+                                F22, FLOOR, GREEN, GX, GY, GZX, GZY, MIX, MX, MY, N_FIELDS, RAD,
+                                REACH, RED, RX, RY, X0, X1, ZHI, ZLO)
 
     n = len(surfels)
     c = float(settings.cutoff)
-    taper = kernel_floor(settings)  # an LOD node's kernel is exp(-q) - e^-c inside the cutoff
-    disc, blades, _, moments = aperture_shape(lens, settings)
+    taper = kernel_floor_reference(settings)  # an LOD node's kernel: exp(-q) - e^-c inside
+    disc, blades, moments = aperture_shape_reference(lens, settings)
     src = from_surfels(surfels)
     ru, rv, area = src.ru, src.rv, src.area
     view = camera.camera_from_world()
@@ -101,7 +293,7 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
     depth = -p[:, 2]
     ax, bx, ay, by = camera.screen_coefficients()
     near = camera.frustum_lrbtn()[4]
-    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    coc_k, inv_focus = coc_coefficients_reference(camera, lens, settings)
 
     splats = np.zeros((n, N_FIELDS))
     bbox = np.zeros((n, 4), np.int32)
@@ -211,7 +403,8 @@ def project_reference(surfels: Surfels, rgb: np.ndarray, camera: Camera, lens,
             if gain is not None:
                 cov_cs = cov_cs * np.asarray(gain[k], np.float64)[:, None]
             # the kernel's covariance: W and the aperture's (a disc: R^2 / 4 per axis)
-            slope = cov_cs @ np.linalg.inv(W + aperture_variance(lens) * radius ** 2 * np.eye(2))
+            slope = cov_cs @ np.linalg.inv(W + aperture_variance_reference(lens) * radius ** 2
+                                           * np.eye(2))
             splats[k, [RX, RY, GX, GY, BX, BY]] = slope.reshape(6)
         bbox[k] = cx0, cx1, cy0, cy1
         visible[k] = True
@@ -253,15 +446,15 @@ def _exponents(m, Wi, x0, x1, y0, y1):
 
 
 def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
-                        max_surfaces: int = 8, merge=(0.0, 0.0, 0.15, 0.5), blades=None,
+                        max_surfaces: int = MAX_SURFACES,
+                        merge=(0.0, 0.0, MERGE_RHO0, MERGE_RHO1), blades=None,
                         sharp_visibility: bool = False):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
-    merge: (K, 1/P, rho0, rho1) of ``frame.merge_parameters`` (K <= 0: the paper's "over");
+    merge: (K, 1/P, rho0, rho1) of ``merge_parameters_reference`` (K <= 0: the paper's "over");
     blades: (N, 2) edge normals of a polygonal aperture (None: round);
     sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility).
     """
-    from .raster.abuffer import OPAQUE
     from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
                                 GY, MIX, MX, MY, RAD, REACH, RED, RX, RY, ZHI, ZLO)
 
@@ -312,11 +505,10 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     ``reach`` pixels of the centre."""
     from scipy.interpolate import RegularGridInterpolator
 
-    from .splat.bokeh import B_MAX, TABLE_B, TABLE_U, aperture_table
-
     u_c = math.sqrt(2 * cutoff)
     table = RegularGridInterpolator((np.linspace(0, B_MAX, TABLE_B),
-                                     np.linspace(-B_MAX, u_c, TABLE_U)), aperture_table(cutoff))
+                                     np.linspace(-B_MAX, u_c, TABLE_U)),
+                                    aperture_table_reference(cutoff))
     ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1] + 0.5
     d = np.stack([xs - m[0], ys - m[1]], axis=-1)
     r = np.hypot(d[..., 0], d[..., 1])
@@ -338,13 +530,13 @@ def aperture_reference(m, W, radius, mix, reach, blades, cutoff, x0, x1, y0, y1)
     return np.where(inside, value, 0.0)
 
 
-def aperture_mass_reference(W, radius, mix, blades, moments, angles=None):
+def aperture_mass_reference(W, radius, mix, blades, moments, angles=None, family=None):
     """bokeh.aperture_mass in numpy: the kernel's integral, int f(theta) dtheta with
     f = (I1(b) + b I0(b)) / s^2 (I0, I1 interpolated in b), by the same two families of
     directions (uniform, and W^(1/2) m of uniform m, from numpy's eigh) and the balance
     heuristic; ``angles`` directions per family instead, uniform only, for a fine plain
-    quadrature that the test compares both with."""
-    from .splat.bokeh import B_MAX, MASS_ANGLES, TABLE_B
+    quadrature that the test compares both with; ``family`` directions per family instead
+    of MASS_ANGLES (twice that for a polygon), as the mass table's are."""
 
     W = np.asarray(W, float)
     Wi = np.linalg.inv(W)
@@ -371,7 +563,8 @@ def aperture_mass_reference(W, radius, mix, blades, moments, angles=None):
     if angles is not None:
         return float(np.sum(f(unit((np.arange(angles) + 0.5) * 2 * math.pi / angles)))
                      * 2 * math.pi / angles)
-    family = MASS_ANGLES if len(blades) == 0 else 2 * MASS_ANGLES
+    family = family or MASS_ANGLES
+    family = family if len(blades) == 0 else 2 * family
     m = unit((np.arange(family) + 0.5) * 2 * math.pi / family)
     lam, vec = np.linalg.eigh(W)
     v = m @ ((vec * np.sqrt(lam)) @ vec.T)  # W^(1/2) m (W^(1/2) is symmetric)
@@ -389,7 +582,6 @@ def aperture_mass_table_reference(W, radius, mix, blades, moments):
     bilinear interpolation in (ln(l2 / l1) / ln(MASS_E_MIN), sigma / (sigma + R)) written
     out again; a polygon, or a kernel more elongated than 1 / MASS_E_MIN, by the quadrature
     (``aperture_mass_reference``)."""
-    from .splat.bokeh import MASS_E, MASS_E_MIN, MASS_V, TABLE_B
 
     l2, l1 = np.linalg.eigvalsh(np.asarray(W, float))
     if len(blades) or l2 < MASS_E_MIN * l1:
@@ -408,7 +600,6 @@ def aperture_mass_table_reference(W, radius, mix, blades, moments):
 
 def merge_fraction_reference(d_front, d_back, opacity_front, merge):
     """The merge fraction of two surfaces (abuffer.merge_fraction), from its definition."""
-    from .raster.abuffer import OPAQUE
 
     coc_k, inv_focus, rho0, rho1 = merge
     if coc_k <= 0:
@@ -427,7 +618,6 @@ def front_reference(splats, visible, width, height, margin=None):
     round it (default abuffer.FRONT_MARGIN; map pixel (i, j) is the image's (i - margin,
     j - margin)) the least depth and z_hi of the opaque unblurred disks on it, and the
     nearest one's z_hi + MERGE_REACH |g| (C_r + 1) (abuffer.front_fragments)."""
-    from .raster.abuffer import FRONT_CUTOFF, FRONT_MARGIN, MERGE_REACH, OPAQUE
     from .splat.project import ALPHA, COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZHI
 
     margin = FRONT_MARGIN if margin is None else margin
@@ -461,8 +651,6 @@ def visibility_reference(s, front, merge, width, margin=None):
     """A splat's visibility (abuffer.splat_visibility): 9 points of its unblurred disk, then,
     if it is hidden at all of them, 4 looks through the lens from each; front: the image's
     front map and ``margin`` pixels round it (``front_reference``), width the image's."""
-    from .raster.abuffer import (FRONT_MARGIN, HIDDEN_H0, LENS_MARGIN, LENS_POINTS, LENS_RING,
-                                 MERGE_REACH, VIS_SAMPLES)
     from .splat.project import COC, DEPTH, F11, F12, F22, GZX, GZY, MX, MY, ZLO
 
     s = np.asarray(s, np.float64)  # as the kernel reads a float32 row: in float64
@@ -541,8 +729,6 @@ def _alpha(s, merge):
     coverage reaches 1 at w_o = COVER_FULL, rising linearly from w_o at COVER_KNEE; where
     it is blurred, at BLUR_COVER_FULL from BLUR_COVER_KNEE (weighted by 1 - sharpness). The
     paper's reconstruction keeps min(1, w_o)."""
-    from .raster.abuffer import (BLUR_COVER_FULL, BLUR_COVER_KNEE, COVER_FULL, COVER_KNEE,
-                                 COVER_SHARP_PX)
 
     coc_k, inv_focus = merge[0], merge[1]
     d = s[5] / s[0]
@@ -640,14 +826,13 @@ def _resolve(surfaces, background, merge=(0.0, 0.0, 0.15, 0.5)):
 def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None):
     """The whole pipeline from the twins (shading is shared: it is numpy already)."""
     from .backends.cpu import shade_surfels
-    from .frame import aperture_shape, merge_parameters
 
     settings = settings or RenderSettings()
     rgb = shade_surfels(surfels, camera, settings)
     splats, bbox, visible = project_reference(surfels, rgb, camera, lens, settings)
     return rasterize_reference(splats, bbox, visible, camera.width, camera.height,
                                settings.cutoff, settings.background,
-                               merge=merge_parameters(camera, lens, settings),
-                               blades=aperture_shape(lens, settings)[1],
+                               merge=merge_parameters_reference(camera, lens, settings),
+                               blades=aperture_shape_reference(lens, settings)[1],
                                sharp_visibility=settings.sharp_visibility
                                and settings.reconstruction == "soft")

@@ -299,7 +299,7 @@ def test_simd_rows_stay_inside_the_table():
 def test_a_blurred_plane_still_sums_to_one(blades):
     """Partition of unity under the aperture's kernels: a square of surfels far out of focus
     (CoC 7.5 px, larger than their spacing of 1.9 px) covers its interior with alpha 1
-    within 0.1 (measured: alpha 0.9975-1.0, the hexagon the lower)."""
+    within 0.005 (measured: alpha 0.9975-1.0, the hexagon the lower)."""
     from conftest import front_camera, grid_surfels
 
     s = grid_surfels(n=48, spacing=1.0 / 48)
@@ -311,7 +311,9 @@ def test_a_blurred_plane_still_sums_to_one(blades):
     ys, xs = np.nonzero(res.alpha > 0.5)
     inner = res.alpha[ys.min() + 12:ys.max() - 11, xs.min() + 12:xs.max() - 11]
     assert inner.size > 100
-    np.testing.assert_allclose(inner, 1.0, atol=0.1)
+    # alpha is capped at 1, so only a deficit shows: measured 0.9975 at least; 0.005 is
+    # twice that (0.1 let a kernel's mass be off by 10 %)
+    np.testing.assert_allclose(inner, 1.0, atol=0.005)
 
 
 @pytest.mark.parametrize("blades", [0, 6])

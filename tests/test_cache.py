@@ -239,3 +239,82 @@ def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir, damage):
     s = grid_surfels(8)  # (a fresh object: the tree is not kept on it yet)
     tree = cached_hierarchy(s, "auto")  # no error: rebuilt, and kept again
     assert len(tree) == 2 * len(s) - 1 and path.stat().st_size > 2000
+
+
+def lod_models(n_models):
+    """Models of as many surfels, each its own fingerprint (their trees are the same size)."""
+    from conftest import grid_surfels
+
+    return [grid_surfels(16, z=0.1 * i) for i in range(n_models)]
+
+
+def test_lod_trees_past_the_cap_evict_the_least_recently_used(cache_dir, monkeypatch):
+    """In real use (``lod.cache.cached_hierarchy``): with room for two trees, a third evicts
+    the least recently used; a hit renews a tree's age, so the older-but-used one stays."""
+    from dofsplat.lod.cache import cache_folder, cached_hierarchy
+    from dofsplat.lod.hierarchy import fingerprint
+
+    models = lod_models(3)
+    paths = [cache_folder() / f"{fingerprint(m)}.npz" for m in models]
+    for age, (model, path) in enumerate(zip(models[:2], paths)):
+        cached_hierarchy(model, "auto")
+        os.utime(path, (1000 + age, 1000 + age))  # tree 0 the older
+    size = max(p.stat().st_size for p in paths[:2])
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", str(int(2.5 * size)))
+    logged = []
+    again = lod_models(1)[0]  # model 0 again, a fresh object: read from the cache
+    cached_hierarchy(again, "auto", log=logged.append)
+    assert logged == []  # a hit: nothing built
+    assert paths[0].stat().st_mtime > 1001  # and its age renewed
+    cached_hierarchy(models[2], "auto")
+    assert paths[0].exists() and not paths[1].exists() and paths[2].exists()
+    assert cache.cache_info()["lod"][0] == 2
+
+
+def test_a_tree_larger_than_the_cap_is_not_kept(cache_dir, monkeypatch):
+    from dofsplat.lod.cache import cache_folder, cached_hierarchy
+    from dofsplat.lod.hierarchy import fingerprint
+
+    first, second = lod_models(2)
+    cached_hierarchy(first, "auto")
+    size = (cache_folder() / f"{fingerprint(first)}.npz").stat().st_size
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", str(size // 2))
+    logged = []
+    tree = cached_hierarchy(second, "auto", log=logged.append)
+    assert len(tree) == 2 * len(second) - 1  # built and used
+    assert logged and logged[0].endswith(", larger than the cache")
+    assert not (cache_folder() / f"{fingerprint(second)}.npz").exists()
+    assert cache.cached_files() == []  # (the older tree went first, then this one)
+
+
+def unwritable_cache(tmp_path, monkeypatch):
+    """A cache whose folders cannot be made: a file stands where each would be
+    (permissions do not stop the tests' root). (A cache folder that lies under a file is
+    refused at once, with a message: ``cache.cache_root``'s callers.)"""
+    root = tmp_path / "cache"
+    root.mkdir()
+    for kind in cache.KINDS:
+        (root / kind).write_text("a file, not a folder")
+    monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(root))
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "1G")
+    monkeypatch.setattr(prepared, "MIN_SECONDS", 0.0)
+
+
+def test_an_unwritable_cache_costs_a_preparation_not_an_error(tmp_path, monkeypatch,
+                                                             points_ply, counted_loader):
+    """A model is prepared each time, without an error (io.prepared)."""
+    unwritable_cache(tmp_path, monkeypatch)
+    load(points_ply)
+    assert not load(points_ply).load_info["from_cache"] and len(counted_loader) == 2
+
+
+def test_an_unwritable_cache_costs_a_tree_rebuild_not_an_error(tmp_path, monkeypatch):
+    """A tree is built and used, with a line saying why it was not kept."""
+    from dofsplat.lod.cache import cached_hierarchy
+
+    unwritable_cache(tmp_path, monkeypatch)
+    logged = []
+    (model,) = lod_models(1)
+    tree = cached_hierarchy(model, "auto", log=logged.append)
+    assert len(tree) == 2 * len(model) - 1
+    assert len(logged) == 1 and "could not keep it in" in logged[0]

@@ -689,3 +689,25 @@ def test_the_neighbour_bounds_are_the_loaders():
     assert neighbour_count(str(MAX_K)) == MAX_K
     with pytest.raises(argparse.ArgumentTypeError, match="from 4 to 256 neighbours"):
         neighbour_count(str(MAX_K + 1))
+
+
+def test_a_failing_second_output_removes_the_first(tmp_path, monkeypatch, capsys):
+    """render_and_write (cli/framing.py): the image is written, then the depth fails (a disk
+    filled up since the outputs were checked): the image this run created is removed, so
+    that no half of a result is left; an image that was there before is not (it was
+    replaced, and cannot come back)."""
+    import dofsplat.io as io
+
+    def full_disk(path, depth):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(io, "write_depth", full_disk)
+    image, depth = tmp_path / "frame.png", tmp_path / "frame.depth.npy"
+    argv = ["demo", "--size", "32x24", "-o", str(image), "--depth", str(depth), "-q"]
+    with pytest.raises(OSError, match="No space left on device"):
+        cli.main(argv)
+    assert not image.exists() and not depth.exists()
+    image.write_bytes(b"an older frame")
+    with pytest.raises(OSError, match="No space left on device"):
+        cli.main(argv)
+    assert image.exists() and image.read_bytes() != b"an older frame"  # replaced, kept

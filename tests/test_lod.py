@@ -12,7 +12,7 @@ from dofsplat.lod import Hierarchy, build_hierarchy, model_arrays, select_splats
 from dofsplat.render import project, shade_surfels
 from dofsplat.slow import project_reference
 
-from conftest import SHARED_DATA, grid_surfels
+from conftest import SHARED_DATA, front_camera, grid_surfels
 
 LN4 = math.log(4.0)
 
@@ -938,3 +938,23 @@ def test_the_automatic_splat_rows_budget_is_a_quarter_of_the_memory_available(
     banded = ds.render(s, cam, None)
     assert banded.stats["bands"] > 1
     np.testing.assert_array_equal(banded.image, whole.image)
+
+
+def test_the_frustum_margin_keeps_a_blurred_model_just_outside_the_frame():
+    """A plane just beyond the frame's right edge (its nearest surfel 0.9 px outside),
+    blurred by a CoC of 22 px: its blur reaches some 20 px into the frame (alpha 0.42 in the
+    last column). The LOD cut culls a node by its bounding sphere against the frustum
+    widened by the largest blurred kernel's reach (``lod.select.visit_node``); without the
+    blur in that margin, the nodes more than a few pixels outside were culled and the
+    strip went dark. The LOD frame against the frame of every surfel: 0.0056 apart at
+    most, measured; the bound, 0.02, is far under the strip's alpha."""
+    cam = front_camera(64, 64, distance=2.0)
+    half_width = 2.0 * math.tan(math.radians(20.0))  # the frame's half-width at z = 0
+    s = grid_surfels(n=64, spacing=0.8 / 64, center=(half_width + 0.42, 0.0))
+    lens = ds.ThinLens(focus_distance=1.0, aperture=1.0)
+    assert lens.coc_radius_px(2.0, cam) > 20
+    lod = ds.render(s, cam, lens, ds.RenderSettings(shading="none"))
+    full = ds.render(s, cam, lens, ds.RenderSettings(shading="none", lod=False))
+    assert full.alpha[:, -1].max() > 0.4 and full.alpha[:, -12].max() > 0.1
+    assert lod.stats["splats_selected"] < 0.01 * len(s)  # nodes, drawn whole
+    np.testing.assert_allclose(lod.image, full.image, atol=0.02)

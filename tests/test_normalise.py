@@ -327,7 +327,7 @@ def test_convert_writes_normalised_surfels(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["-o", "{tmp}/out.png"], "surfel PLY"),
+    (["-o", "{tmp}/out.png"], "saved as a PLY"),
     (["-o", "{tmp}/out.ply", "--normalise", "pixels"], "invalid choice"),
     (["-o", "{tmp}/missing_dir/out.ply"], "missing_dir"),
 ])

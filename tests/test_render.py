@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 import dofsplat as ds
-from dofsplat.render import aperture_shape, merge_parameters, project, shade_surfels
-from dofsplat.slow import project_reference, rasterize_reference, render_reference
+from dofsplat.render import project, shade_surfels
+from dofsplat.slow import (aperture_shape_reference, merge_parameters_reference,
+                           project_reference, rasterize_reference, render_reference)
 from dofsplat.surfels import concatenate
 
 from conftest import front_camera, grid_surfels
@@ -205,8 +206,8 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     res = ds.render(s, cam, lens, st)
     img, depth, weight, frags = rasterize_reference(
         *fast, cam.width, cam.height, st.cutoff, st.background,
-        merge=merge_parameters(cam, lens, st), blades=aperture_shape(lens, st)[1],
-        sharp_visibility=sharp)
+        merge=merge_parameters_reference(cam, lens, st),
+        blades=aperture_shape_reference(lens, st)[1], sharp_visibility=sharp)
     np.testing.assert_allclose(res.image, img, atol=1e-4)
     if sharp:  # the front pass removed something, or the case tests nothing new
         plain = ds.render(s, cam, lens, dataclasses.replace(st, sharp_visibility=False))
@@ -219,6 +220,179 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     # and the all-twin pipeline
     img2 = render_reference(s, cam, lens, st)[0]
     np.testing.assert_allclose(res.image, img2, atol=1e-4)
+
+
+def deep_scene(seed, n=120):
+    """Surfels spread 3.2 units in depth before a camera 4 units away, half of them opaque
+    and half translucent (opacity 0.2-0.9): focused at 3, an aperture of 8 blurs them by
+    circles of confusion of 0.4 to 36 px (median 18), so nearly every splat is drawn with
+    the aperture's kernel, and a few lie within SMALL_APERTURE of the kernel's sigma."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(-1, 1, (n, 3)) * [0.9, 0.7, 1.6]
+    nrm = rng.normal(size=(n, 3))
+    nrm[:, 2] = np.abs(nrm[:, 2]) + 0.5
+    opacity = np.where(rng.uniform(size=n) < 0.5, 1.0, rng.uniform(0.2, 0.9, n))
+    return ds.Surfels(positions=pos, normals=nrm, radius=rng.uniform(0.03, 0.12, n),
+                      colors=rng.uniform(0, 1, (n, 3)), opacity=opacity)
+
+
+def stacked_floors(n=20, gap=0.4):
+    """Two opaque floors (y = 0 and y = gap, normals +y) seen from above at 60 degrees: the
+    upper one hides the lower one at every point of 40 % of its disks, some (CoC + 1) |g|
+    behind it (|g|, the depth change per pixel along the floor, 0.025-0.047), where the
+    front pass's MERGE_REACH decides whether a hidden splat is looked at through the lens."""
+    from dofsplat.surfels import concatenate
+
+    to_floor = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # z -> y
+    floors = []
+    for y, color in ((0.0, (0.1, 0.3, 0.8)), (gap, (0.8, 0.2, 0.1))):
+        s = grid_surfels(n=n, spacing=1.6 / n, color=color, z=y)
+        floors.append(dataclasses.replace(s, positions=s.positions @ to_floor.T,
+                                          normals=s.normals @ to_floor.T))
+    return concatenate(floors)
+
+
+def twin_frame(s, cam, lens, st):
+    """The frame of the kernels against the slow twins' (slow.py, its own constants,
+    tables and frame parameters): the projected splats to rtol 1e-4 (float32 rows), the
+    same bounding boxes, and the rasteriser's image, weights, depths and fragment count on
+    the same splats; the image within 1e-4 (float32 accumulation; measured 1e-7 to 1e-6)."""
+    rgb = shade_surfels(s, cam, st)
+    fast = project(s, rgb, cam, lens, st)
+    slow = project_reference(s, rgb, cam, lens, st)
+    np.testing.assert_array_equal(fast[2], slow[2])
+    vis = fast[2]
+    np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(fast[1][vis], slow[1][vis])
+    res = ds.render(s, cam, lens, st)
+    img, depth, weight, frags = rasterize_reference(
+        *fast, cam.width, cam.height, st.cutoff, st.background,
+        merge=merge_parameters_reference(cam, lens, st),
+        blades=aperture_shape_reference(lens, st)[1])
+    np.testing.assert_allclose(res.image, img, atol=1e-4)
+    np.testing.assert_allclose(res.weight, weight, atol=1e-4)
+    fin = np.isfinite(depth)
+    np.testing.assert_array_equal(np.isfinite(res.depth), fin)
+    np.testing.assert_allclose(res.depth[fin], depth[fin], rtol=1e-4)
+    assert res.stats["fragments"] == frags
+    return fast, res
+
+
+@pytest.mark.parametrize("blades", [0, 6])
+def test_aperture_kernels_equal_their_numpy_twins(blades):
+    """Real aperture kernels (splat/bokeh.py) against the twins: circles of confusion of
+    0.4-36 px, 119 of the 120 splats drawn with the disc or the hexagon (the frames of
+    ``test_kernels_equal_their_numpy_twins`` reach 0.78 px and draw none), half of them
+    translucent. SMALL_APERTURE of 4 instead of 1 moves the image by 0.05 here."""
+    from dofsplat.splat.project import COC, RAD
+
+    cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=48, height=36, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=8.0, bokeh="disc", blades=blades)
+    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), shading="none", lod=False)
+    fast, _ = twin_frame(deep_scene(0), cam, lens, st)
+    vis = fast[2]
+    coc = fast[0][vis, COC]
+    assert coc.max() > 30 and np.median(coc) > 10
+    assert np.count_nonzero(fast[0][vis, RAD]) >= 0.9 * vis.sum()
+
+
+def test_the_front_pass_reach_equals_its_numpy_twin():
+    """Two opaque floors 0.4 apart, blurred by a CoC of up to 2.4 px: the upper one hides
+    the lower at every point of many of its disks, where the front pass looks through the
+    lens only if the lower surface lies within MERGE_REACH (CoC + 1) |g| of the front's
+    reach (``abuffer.splat_visibility``): the fragments and the image against the twins.
+    With the twins' MERGE_REACH at 2 instead of 6 the frame keeps splats that 6 removes:
+    26,402 fragments instead of 19,738, the image 0.023 apart (measured)."""
+    cam = ds.Camera(eye=(0.0, 2.5, 1.5), target=(0, 0, 0), width=40, height=30, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=0.8, bokeh="disc")
+    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), shading="none", lod=False)
+    twin_frame(stacked_floors(), cam, lens, st)
+
+
+def test_an_lod_cut_with_aperture_kernels_equals_its_numpy_twin():
+    """An LOD cut (nodes with their filter V^q, colour slopes and the taper) drawn with
+    aperture kernels of CoC up to 36 px, against the twins."""
+    from dofsplat.backends.cpu import select, shade_splats
+
+    s = deep_scene(3, n=400)
+    cam = ds.Camera(eye=(0.3, 0.2, 4), target=(0, 0, 0), width=40, height=30, fov_y=35)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=8.0, bokeh="disc")
+    st = ds.RenderSettings(background=(0.1, 0.2, 0.3), lod_blur_fraction=1.0,
+                           lod_color_tolerance=math.inf, lod_min_node=2, taper=True)
+    src = select(s, cam, lens, st)
+    assert (src.level > 0).sum() > 10  # nodes, not only surfels
+    as_surfels = ds.Surfels(positions=src.positions, normals=src.normals, radius=src.ru,
+                            colors=src.colors, opacity=src.opacity,
+                            weight=src.area / (src.ru * src.rv))
+    rgb, gain = shade_splats(src, cam, st)
+    fast = project(src, rgb, cam, lens, st, gain=gain)
+    slow = project_reference(as_surfels, rgb, cam, lens, st, lod_cov=src.lod_cov,
+                             color_grad=src.color_grad, gain=gain)
+    np.testing.assert_array_equal(fast[2], slow[2])
+    vis = fast[2]
+    np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=2e-4, atol=1e-5)
+    res = ds.render(s, cam, lens, st)
+    img = rasterize_reference(*fast, cam.width, cam.height, st.cutoff, st.background,
+                              merge=merge_parameters_reference(cam, lens, st))[0]
+    np.testing.assert_allclose(res.image, img, atol=1e-4)
+
+
+def test_the_slow_constants_equal_the_kernels():
+    """slow.py writes its constants out (``TWIN_CONSTANTS``) rather than importing them, so
+    that a constant changed in a kernel's module fails the twin comparisons; a change made
+    on purpose is made in both, and this test names the one forgotten."""
+    import importlib
+
+    from dofsplat import slow
+
+    for name, where in slow.TWIN_CONSTANTS.items():
+        module, attr = where.split(":")
+        assert getattr(importlib.import_module(module), attr) == getattr(slow, name), where
+
+
+def test_the_slow_aperture_table_is_the_convolution():
+    """The twins' aperture table (a Gauss-Legendre quadrature of the Gaussian-disc
+    convolution, slow.disc_convolution) against the kernels' (scipy's non-central
+    chi-square, bokeh.aperture_table): the same to 1e-12 (measured 7e-15), for three
+    cutoffs; its moments and mass table (bokeh.aperture_moments) to 1e-6 (2e-7 absolute). And the
+    quadrature itself at points with a closed form: the centre (T = 1), the Gaussian's
+    tail far outside the disc, and the disc's edge for a wide disc (1/2)."""
+    from dofsplat.slow import (aperture_moments_reference, aperture_table_reference,
+                               disc_convolution)
+    from dofsplat.splat.bokeh import aperture_moments, aperture_table
+
+    for cutoff in (2.0, 2.5, 4.0):
+        np.testing.assert_allclose(aperture_table_reference(cutoff), aperture_table(cutoff),
+                                   rtol=0, atol=1e-12)
+    # (each integrates the table's rows by the trapezoid rule, on 20001 and 4001 points:
+    # 5e-8 apart at most, measured)
+    np.testing.assert_allclose(aperture_moments_reference(2.5), aperture_moments(2.5),
+                               rtol=1e-6, atol=2e-7)
+    assert disc_convolution(-3.0, 3.0) == pytest.approx(1.0, abs=1e-12)  # d = 0
+    assert disc_convolution(0.0, 40.0) == pytest.approx(0.5, abs=0.01)  # edge of a wide disc
+    # a small disc is a Gaussian: T(d) = exp(-d^2 / 2) as b -> 0
+    assert disc_convolution(2.0 - 1e-3, 1e-3) == pytest.approx(math.exp(-2.0), rel=1e-5)
+
+
+def test_the_slow_frame_parameters_equal_the_kernels():
+    """The twins' own frame parameters (merge band, blade normals, aperture variance, taper)
+    against frame.py's, for round and polygonal lenses and both reconstructions."""
+    from dofsplat.frame import aperture_shape, aperture_variance, kernel_floor, merge_parameters
+    from dofsplat.slow import aperture_variance_reference, kernel_floor_reference
+
+    cam = front_camera(32, 24)
+    for lens in (None, ds.ThinLens(focus_distance=2.0, aperture=0.3),
+                 ds.ThinLens(focus_distance=1.5, aperture=0.2, bokeh="disc", blades=5,
+                             blade_rotation=17.0)):
+        for st in (ds.RenderSettings(), ds.RenderSettings(reconstruction="paper", taper=True)):
+            assert merge_parameters_reference(cam, lens, st) == merge_parameters(cam, lens, st)
+            disc, blades, _, _ = aperture_shape(lens, st)
+            mine = aperture_shape_reference(lens, st)
+            assert mine[0] == disc
+            np.testing.assert_allclose(mine[1], blades, atol=1e-15)
+            assert aperture_variance_reference(lens) == pytest.approx(aperture_variance(lens),
+                                                                      rel=1e-14)
+            assert kernel_floor_reference(st) == kernel_floor(st)
 
 
 @pytest.mark.parametrize("lod", [False, True])

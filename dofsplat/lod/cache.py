@@ -47,7 +47,10 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
         except DofsplatError:
             if str(cache_arg) != "auto":
                 raise  # the user's own file: say what is wrong with it
-            path.unlink(missing_ok=True)  # a damaged cache entry: rebuilt below
+            try:
+                path.unlink(missing_ok=True)  # a damaged cache entry: rebuilt below
+            except OSError:
+                pass  # an unreadable cache folder (a file where it should be): rebuilt, not kept
     if tree is not None and str(cache_arg) == "auto":
         cache.touch(path)  # just used: evicted last
     if tree is None:
