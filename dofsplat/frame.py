@@ -53,6 +53,7 @@ class RenderSettings:
     lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
     gaussian_blur: str = "ours"  # Gaussian scenes: "ours" (the aperture's variance added, opacity spread, the 1/255 cut on the sharp footprint's scale) or "viewers" (the baseline of PlayCanvas and Spark: CoC^2 added, the cut on the spread opacity); gauss/project.py
     gaussian_lens_samples: int = 4  # Gaussian scenes: the lens drawn in this many parts (as lens_samples, which wins when larger): 1.1-7.3 dB closer to the lens reference than one pass at 0.9-1.5 x its cost (bench/RESULTS.md); 1 = one pass
+    gaussian_lod: bool = True  # Gaussian scenes: draw coarser Gaussians where the lens blurs (gauss/lod.py; the stop is lod_blur_fraction; lod=False turns it off too): at 35 px 3.8-8.7x faster, 1.9-3.8 dB closer to the lens reference on the donut and playbot, 2.5 dB further on the guitar (bench/RESULTS.md)
     gaussian_antialiased: bool = False  # Gaussian scenes: gsplat's "antialiased" mode, the opacity scaled by sqrt(det before / det after) the 0.3 px^2 low-pass (for scenes trained so; gauss/project.py)
     sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); 1.1-1.5 x a pinhole frame's time (bench/profile.py --sharp-visibility); the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 

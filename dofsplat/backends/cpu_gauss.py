@@ -24,6 +24,7 @@ from ..gauss.composite import TILE, bin_tiles, composite_tiles, depth_order
 from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
                              F_OPACITY, N_FIELDS, intrinsics,
                              project_gaussians, view_matrix)
+from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
 from ..gaussians import Gaussians
 from ..splat.subaperture import aperture_second_moment
 
@@ -41,6 +42,9 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     blur = settings.gaussian_blur
     k = max(settings.lens_samples, settings.gaussian_lens_samples)
     parts = lens_parts(camera, lens, replace(settings, lens_samples=k))
+    n_in = len(scene)
+    if settings.lod and settings.gaussian_lod and coc_coefficients(camera, lens, settings)[0] > 0.0:
+        scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
     share = None
     if blur == "ours" and coc_coefficients(camera, lens, settings)[0] > 0.0:
         share = lens_visibility(scene, camera, lens, settings)
@@ -60,10 +64,22 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
                 stats[key] += s[key]
         color, trans = color / len(parts.cameras), trans / len(parts.cameras)
     image = to_linear_rgba(color, trans, settings.background)
-    stats.update(points_in=len(scene), width=camera.width, height=camera.height,
+    stats.update(points_in=n_in, width=camera.width, height=camera.height,
                  total_ms=(time.perf_counter() - t0) * 1000.0)
     alpha = image[..., 3].copy()
     return RenderResult(image=image, depth=depth, weight=alpha, stats=stats)
+
+
+def lod_cut(scene: Gaussians, camera: Camera, lens, settings: RenderSettings) -> GaussianArrays:
+    """The scene's LOD cut for this frame (``gauss/lod.py``): coarser Gaussians where the
+    lens (a part's residual, with the lens in parts) blurs more than they are wide. The
+    cut depends on depth alone, so one serves every part of the lens."""
+    tree = tree_for(scene)
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    rows = select_cut(tree, view_matrix(camera), intrinsics(camera)[0], camera.near if
+                      camera.frustum is None else camera.frustum[4], coc_k, inv_focus,
+                      blur_variance(lens), settings.lod_blur_fraction)
+    return cut_arrays(tree, rows)
 
 
 def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
