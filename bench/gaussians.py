@@ -11,12 +11,14 @@ For each shared 3DGS scene, seen by the default camera of ``dofsplat render`` (t
   ``pip install -e ".[gsplat-peer]"``), PSNR on the displayed values;
 * **depth of field**, focused on the surface at the image centre, at apertures whose largest
   circle of confusion over the frame's depths (its 2nd and 98th percentiles) is 10, 20 and
-  35 px: one pass of ours (``ours``, ``gaussian_lens_samples=1``), the viewers' blur
-  (``viewers``: PlayCanvas splat-transform's and Spark's), the pinhole image and the lens in
-  4 parts (``parts4``, the default frame since the run of RESULTS), each against
+  35 px: the default frame (``default``: the lens in 4 parts, LOD), the same without LOD
+  (``no_lod``), one pass (``one_pass``), the viewers' blur as they ship it (``viewers``:
+  PlayCanvas splat-transform's and Spark's; one pass, every Gaussian) and the pinhole
+  image, each against
   the truth, the average of ``--samples`` pinhole frames through points of the lens
   (``dofsplat reference``): whole-frame PSNR and the worst 2 % of 32 x 32 tiles;
-* **time**: the pinhole frame and the default frame of the same run (the machine is named).
+* **time**: the pinhole frame, the default frame and the others, in the same run (the
+  machine is named).
 
 The figures go to ``--out`` (JSON) and a table on stdout; bench/RESULTS.md quotes them.
 """
@@ -131,25 +133,28 @@ def run_scene(name, path, size, samples, settings):
         ref_s = time.perf_counter() - t
         row = {"coc_px": coc, "focus": lens.focus_distance, "aperture": lens.aperture,
                "reference_s": ref_s}
+        variants = {
+            "default": settings,
+            "no_lod": dataclasses.replace(settings, gaussian_lod=False),
+            "one_pass": dataclasses.replace(settings, gaussian_lens_samples=1),
+            # the viewers' blur as they ship it: one pass, every Gaussian
+            "viewers": dataclasses.replace(settings, gaussian_blur="viewers",
+                                           gaussian_lens_samples=1, gaussian_lod=False),
+        }
         frames = {}
-        t = time.perf_counter()
-        frames["ours"] = ds.render(scene, camera, lens,
-                                   dataclasses.replace(settings, gaussian_lens_samples=1))
-        row["ours_s"] = time.perf_counter() - t
-        frames["viewers"] = ds.render(scene, camera, lens, dataclasses.replace(
-            settings, gaussian_blur="viewers", gaussian_lens_samples=1))
+        for key, st in variants.items():
+            t = time.perf_counter()
+            frames[key] = ds.render(scene, camera, lens, st)
+            row[f"{key}_s"] = time.perf_counter() - t
         frames["pinhole"] = pinhole
-        t = time.perf_counter()
-        frames["parts4"] = ds.render(scene, camera, lens,
-                                     dataclasses.replace(settings, gaussian_lens_samples=4))
-        row["parts4_s"] = time.perf_counter() - t
         for key, frame in frames.items():
             row[key] = {"psnr": psnr(frame.image, ref.image),
                         "worst_2pct_tiles": worst_tiles(frame.image, ref.image)}
         out["dof"].append(row)
         print(f"  {name} CoC {coc:4.0f} px: " + "  ".join(
             f"{k} {row[k]['psnr']:.2f} ({row[k]['worst_2pct_tiles']:.2f})" for k in frames)
-            + f"  ours {row['ours_s']:.2f} s, pinhole {out['pinhole_s']:.2f} s", flush=True)
+            + f"  default {row['default_s']:.2f} s, no LOD {row['no_lod_s']:.2f} s, pinhole "
+              f"{out['pinhole_s']:.2f} s", flush=True)
     return out
 
 
