@@ -36,10 +36,33 @@ def cache_root() -> Path:
 
 
 def cache_folder(kind: str) -> Path:
-    """The folder of one kind of cached file (``KINDS``)."""
+    """The folder of one kind of cached file (``KINDS``). DofsplatError where the cache
+    folder, or a folder above it, is a file (``DOFSPLAT_CACHE_DIR`` naming a file was a
+    NotADirectoryError traceback)."""
     if kind not in KINDS:
         raise ValueError(f"unknown cache kind {kind!r}")
-    return cache_root() / kind
+    root = cache_root()
+    check_folder(root)
+    return root / kind
+
+
+def check_folder(root: Path) -> None:
+    """DofsplatError where ``root``, or the nearest of its parents that exists, is not a
+    folder (nothing could be cached under it)."""
+    for path in (root, *root.parents):
+        try:
+            if not path.exists():
+                continue
+        except OSError:
+            return  # unreadable: the write that follows says why, or is skipped
+        if path.is_dir():
+            return
+        via = ("DOFSPLAT_CACHE_DIR" if os.environ.get("DOFSPLAT_CACHE_DIR")
+               else "XDG_CACHE_HOME" if os.environ.get("XDG_CACHE_HOME") else "the home folder")
+        where = "is a file" if path == root else f"lies under {path}, which is a file"
+        raise DofsplatError(f"the cache folder {root} {where}, not a folder (set by {via}): "
+                            "point DOFSPLAT_CACHE_DIR at a folder, or set DOFSPLAT_CACHE_MAX=0 "
+                            "to cache nothing")
 
 
 def enabled() -> bool:

@@ -200,7 +200,7 @@ def frame_path(folder: Path, index: int, frame_format: str = "png") -> Path:
 def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: Camera,
             lens: ThinLens | EyeLens | None = None, settings: RenderSettings | None = None, *,
             output=None, fps: float = 24.0, easing: str = "smooth",
-            frame_format: str = "png", client=None, progress: bool = False):
+            frame_format: str = "png", client=None, progress: bool = False, log=None):
     """Render a sequence; returns the ``n_frames`` frames, each an (H, W, 4) float32 linear
     RGBA image as ``render`` gives, when ``output`` is None; else writes ``output`` (a
     folder of frame_0000.png ..., an .mp4 or a .gif) and returns its path.
@@ -217,7 +217,9 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
     this sequence of this model: a folder of another model (any array or the material
     changed: recoloured, new weights, radii, opacities) or of other cameras, lenses or
     settings is refused with a DofsplatError naming it and what differs, its frames left
-    alone; so is a folder of frames no dofsplat sequence wrote (``_claim``).
+    alone; so is a folder of frames no dofsplat sequence wrote (``_claim``). log: where
+    to say that a run resumes ("resuming: N of M frames already there") and, on Ctrl-C,
+    what it kept ("interrupted: N of M frames kept in FOLDER; ..."); None says nothing.
     """
     if easing not in EASINGS:
         raise DofsplatError(f"easing must be one of {', '.join(EASINGS)}, got {easing!r}")
@@ -252,7 +254,17 @@ def animate(surfels: Surfels, keyframes: list[Keyframe], n_frames: int, camera: 
         raise DofsplatError(f"{output}: cannot write: {e.strerror or e}") from e
     _claim(folder, specs, settings, surfels, frame_format)
     todo = [s for s in specs if not frame_path(folder, s.index, frame_format).exists()]
-    _render_into(folder, todo, len(specs), surfels, settings, frame_format, client, progress)
+    if log is not None and len(todo) < len(specs):
+        log(f"resuming: {len(specs) - len(todo)} of {len(specs)} frames already there")
+    try:
+        _render_into(folder, todo, len(specs), surfels, settings, frame_format, client,
+                     progress)
+    except KeyboardInterrupt:
+        if log is not None:
+            kept = sum(frame_path(folder, s.index, frame_format).exists() for s in specs)
+            log(f"interrupted: {kept} of {len(specs)} frames kept in {folder}; run the same "
+                "command again to resume")
+        raise
     if video:
         frames = [frame_path(folder, s.index) for s in specs]
         write_video(output, frames, fps)

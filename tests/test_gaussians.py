@@ -368,3 +368,25 @@ def test_lod_frame_stays_near_the_full_frame():
     cut = ds.render(g, cam, lens, ds.RenderSettings(gaussian_lod=True, lod_blur_fraction=0.35))
     assert cut.stats["splats_rendered"] < 0.5 * full.stats["splats_rendered"]  # 728 of 2,396
     assert psnr(cut.image, full.image) > 35.0  # 41.0 measured
+
+
+def test_the_compile_notice_names_the_gaussian_kernels(tmp_path):
+    """On fresh kernel caches, `dofsplat render` of a Gaussian scene says first that the
+    Gaussian kernels compile, with their own estimate (not the surfel renderer's 90 s)."""
+    import os
+    import subprocess
+
+    from conftest import SHARED_DATA
+    from dofsplat.backends.cpu_gauss import COMPILE_SECONDS
+
+    path = SHARED_DATA / "gaussian_scenes" / "fruit_drops_minimal.ply"
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path}")
+    env = dict(os.environ, DOFSPLAT_KERNEL_DIR=str(tmp_path / "kernels"))
+    result = subprocess.run(["dofsplat", "render", str(path), "-o", str(tmp_path / "f.png"),
+                             "--size", "64x48"], capture_output=True, text=True, env=env,
+                            timeout=900)
+    assert result.returncode == 0, result.stderr
+    first = result.stderr.splitlines()[0]
+    assert first.startswith("dofsplat: compiling the Gaussian rendering kernels, once "
+                            f"(about {COMPILE_SECONDS} s"), first

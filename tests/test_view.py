@@ -171,7 +171,7 @@ def test_click_to_focus_in_a_browser(tmp_path):
                 time.sleep(0.1)
             after = float(field.input_value())
             page.get_by_role("button", name="Save image").click()
-            wait_for("wrote view-")
+            wait_for(f"wrote {tmp_path.resolve()}/view-")  # the full path
             browser.close()
     finally:
         proc.terminate()
@@ -205,7 +205,7 @@ def test_ctrl_c_stops_the_server_cleanly():
     lines = []
     threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True).start()
     t0 = time.monotonic()
-    while not any("viewer at" in line for line in lines):
+    while not any("ready:" in line for line in lines):  # the model loaded, pages served
         assert proc.poll() is None and time.monotonic() - t0 < 120, "".join(lines)
         time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
@@ -221,7 +221,7 @@ def test_moving_frames_use_the_papers_lod_stop():
     frame keeps the settings' own (0.35, nodes of at least 4 surfels, 0.02 by default)."""
     from types import SimpleNamespace
 
-    from dofsplat.viewer import MOVING_LOD_BLUR_FRACTION, _Session
+    from dofsplat.viewer import MOVING_LOD_BLUR_FRACTION, LensFields, _Session
 
     session = object.__new__(_Session)  # the controls current() reads, without a browser
     cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=400, height=300)
@@ -230,9 +230,8 @@ def test_moving_frames_use_the_papers_lod_stop():
     session.client = SimpleNamespace(camera=SimpleNamespace(
         position=position, wxyz=wxyz, fov=math.radians(cam.fov_y), image_width=400,
         image_height=300))
-    session.scale, session.focus, session.bokeh = value(1.0), value(3.0), value("disc")
-    session.blades, session.f_number, session.focal = value(0), value(0.0), value(0.0)
-    session.aperture, session.lod, session.show_lod = value(0.1), value(True), value(False)
+    session.scale, session.fields = value(1.0), LensFields(focus=3.0, diameter=0.1)
+    session.lod, session.show_lod, session.gaussians = value(True), value(False), False
     session.settings = ds.RenderSettings()
     _, _, moving = session.current("low")
     camera, _, still = session.current("high")

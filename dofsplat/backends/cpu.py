@@ -492,19 +492,45 @@ def front_chunk(splats, visible, camera: Camera, front, margin: int) -> None:
 # -- helpers -----------------------------------------------------------------------------
 
 _WARM = False
-COMPILE_SECONDS = 35  # a cold first run on the developers' 2-core machine (README)
+# Seconds a cold first run spends compiling, measured on the developers' 2-core machine
+# (shared, so a range; README, "numba"): the renderer's kernels (``warm_up``), and the
+# preparation kernels of a point cloud (normals, radii) and of a mesh (sampling), each with
+# the object-space normalisation's kernel, which compile apart from the renderer's.
+COMPILE_SECONDS = 90
+PREP_COMPILE_SECONDS = {"point-cloud": 8, "mesh": 4}
+
+
+def kernel_cached(kernel) -> bool:
+    """Whether numba's disk cache holds ``kernel`` (a ``cache=True`` dispatcher) compiled
+    from the current source. Reads numba's cache index (a private interface): True if it
+    cannot, so that a changed numba says nothing rather than fails."""
+    try:
+        return bool(kernel._cache._cache_file._load_index())
+    except Exception:  # noqa: BLE001
+        return True
 
 
 def kernels_compiled() -> bool:
     """Whether numba's disk cache holds the rasteriser for the current source; False on a
     first run (or after an upgrade), when ``warm_up`` compiles every kernel: about
-    COMPILE_SECONDS. Reads numba's cache index (a private interface): True if it cannot."""
-    try:
-        from ..raster.abuffer import rasterize_band
+    COMPILE_SECONDS."""
+    from ..raster.abuffer import rasterize_band
 
-        return bool(rasterize_band._cache._cache_file._load_index())
-    except Exception:  # noqa: BLE001 - a changed numba: say nothing rather than fail
-        return True
+    return kernel_cached(rasterize_band)
+
+
+def prep_kernels_compiled(kind: str) -> bool:
+    """``kernels_compiled`` for the preparation of a "point-cloud" or a "mesh"
+    (PREP_COMPILE_SECONDS): its own kernel and the object-space normalisation's."""
+    from ..prep import normalise
+
+    if kind == "point-cloud":
+        from ..prep.pointcloud import _pca_kernel as kernel
+    elif kind == "mesh":
+        from ..prep.meshes import _eliminate as kernel
+    else:
+        raise ValueError(f"unknown preparation {kind!r}")
+    return kernel_cached(kernel) and kernel_cached(normalise._object_sums_kernel)
 
 
 def warm_up() -> None:

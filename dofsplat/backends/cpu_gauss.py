@@ -187,3 +187,29 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
         share = np.minimum(seen[:, idx].sum(axis=0) / energy, 1.0)
         best[idx] = np.maximum(best[idx], share)
     return np.minimum(best / SHARE_SEEN, 1.0).astype(np.float32)
+
+
+# -- helpers -----------------------------------------------------------------------------
+
+COMPILE_SECONDS = 25  # the Gaussian kernels' cold compile on 2 cores (22 s, a loaded machine)
+
+
+def kernels_compiled() -> bool:
+    """Whether numba's disk cache holds the Gaussian kernels for the current source (False
+    on a first run, when ``warm_up`` compiles them: about COMPILE_SECONDS)."""
+    from .cpu import kernel_cached
+
+    return kernel_cached(project_gaussians) and kernel_cached(composite_tiles)
+
+
+def warm_up() -> None:
+    """Compile (or load) the Gaussian kernels: a frame of two Gaussians through a lens."""
+    scene = Gaussians(positions=[[0, 0, 0], [0.1, 0, 0]], scales=[[0.1] * 3] * 2,
+                      rotations=[[1, 0, 0, 0]] * 2, opacity=[0.5, 0.5],
+                      sh=np.zeros((2, 1, 3), np.float32))
+    camera = Camera(eye=(0, 0, 1), target=(0, 0, 0), width=8, height=8)
+    from ..camera import ThinLens
+
+    render_gaussians_cpu(scene, camera, ThinLens(focus_distance=0.5, aperture=0.1),
+                         RenderSettings())
+

@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 from ..errors import DofsplatError
-from .framing import check_arguments, lens_from_args, settings_from_args
+from .framing import (check_arguments, lens_from_args, photographic_camera,
+                      settings_from_args)
 from .options import (EXIT_OK, UNITS, HelpFormatter, add_input_options, add_view_options,
                       finite_number, non_negative, positive_int, positive_number)
 
@@ -23,6 +24,11 @@ examples:
 """
 
 
+# every frame's camera and lens is planned before the first renders: 1e8 frames sat silent
+# for minutes (and a 24 fps hour is 86,400 frames)
+MAX_FRAMES = 100_000
+
+
 def add_parser(commands) -> None:
     """The ``animate`` subcommand's options."""
     p = commands.add_parser(
@@ -33,7 +39,11 @@ def add_parser(commands) -> None:
                     "shortcuts below or by a keyframe file, and each frame is what 'render' "
                     "draws for that frame's camera and lens. The model is loaded once. OUT "
                     "is an .mp4 (H.264), a .gif or a folder of frames (frame_0000.png, ...); "
-                    "frames already in the folder are kept, so an interrupted run resumes. "
+                    "frames already in the folder are kept, so an interrupted run resumes "
+                    "(Ctrl-C says how many were kept; the same command again resumes). A "
+                    "folder that holds the frames of another model (the folder records the "
+                    "model's content hash) or of other arguments is refused, its frames "
+                    "left alone. "
                     "Needs pip install 'dofsplat[animate]' (Dask, PyAV).")
     p.add_argument("input", metavar="INPUT", nargs="?",
                    help="model file, as for 'render' (or give --demo)")
@@ -42,7 +52,7 @@ def add_parser(commands) -> None:
                    help="an .mp4, a .gif, or a folder for the frames")
     seq = p.add_argument_group("sequence")
     seq.add_argument("--frames", metavar="N", type=int, required=True,
-                     help="number of frames")
+                     help=f"number of frames (at most {MAX_FRAMES:,})")
     seq.add_argument("--fps", metavar="F", type=positive_number, default=24.0,
                      help="frames per second of the video (default: 24)")
     seq.add_argument("--focus-from", metavar="P0", type=positive_number,
@@ -65,8 +75,8 @@ def add_parser(commands) -> None:
     seq.add_argument("--frame-format", choices=("png", "npy", "exr"), default="png",
                      help="the frames' format in a folder (default: png)")
     seq.add_argument("--workers", metavar="N", type=positive_int,
-                     help="render on a local Dask cluster of N processes (default: in this "
-                          "process, frame after frame)")
+                     help="render on a local Dask cluster of N processes, at most one per "
+                          "core (default: in this process, frame after frame)")
     seq.add_argument("--scheduler", metavar="ADDRESS",
                      help="render on an existing Dask cluster, e.g. tcp://host:8786")
     add_input_options(p)
@@ -102,14 +112,18 @@ def run(args) -> int:
     if settings.dof:
         focus = args.focus if args.focus is not None else default_focus
         lens = lens_from_args(args, focus, default_aperture)
+        camera = photographic_camera(args, camera, focus)
     if args.focus_at is not None and settings.dof:
         keys = [sequence.Keyframe(0.0, {"focus_at": tuple(args.focus_at)})] + keys
 
     client, cluster = _client(args)
+    log = None if args.quiet else (lambda m: print(f"dofsplat: {m}", file=sys.stderr,
+                                                   flush=True))
     try:
         sequence.animate(surfels, keys, args.frames, camera, lens, settings, output=out,
                          fps=args.fps, easing=easing, frame_format=args.frame_format,
-                         client=client, progress=not args.quiet and sys.stderr.isatty())
+                         client=client, progress=not args.quiet and sys.stderr.isatty(),
+                         log=log)
     finally:
         if client is not None:
             client.close()
@@ -134,6 +148,10 @@ def _check(args) -> None:
                             if args.demo else "give a model file to animate, or --demo")
     if args.frames < 1:
         raise DofsplatError(f"--frames must be at least 1, got {args.frames}")
+    if args.frames > MAX_FRAMES:
+        raise DofsplatError(f"--frames {args.frames:,} is more than {MAX_FRAMES:,} (over an hour "
+                            "at 24 fps); render a long sequence in parts, each into its own "
+                            "folder")
     out = Path(args.output)
     if out.suffix and out.suffix.lower() not in VIDEO_SUFFIXES:
         raise DofsplatError(f"{out}: write a sequence as .mp4, .gif or a folder (a name "
@@ -201,11 +219,27 @@ def _client(args):
         except (OSError, TimeoutError, ValueError) as e:  # unreachable, or malformed
             raise DofsplatError(f"cannot reach the Dask scheduler at {args.scheduler}: "
                                 f"{e}") from None
-    threads = max(1, (os.cpu_count() or 1) // args.workers)
+    cores = available_cores()
+    if args.workers > cores:
+        # more processes than cores only share them, each starting its own interpreter
+        # and kernels (64 on 2 cores printed 127 lines of Dask's warnings)
+        if not args.quiet:
+            print(f"dofsplat: --workers {args.workers} is more than the {cores} core"
+                  f"{'s' * (cores != 1)} here: using {cores}", file=sys.stderr)
+        args.workers = cores
+    threads = max(1, cores // args.workers)
     cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
                            dashboard_address=None,
                            env={"NUMBA_NUM_THREADS": str(threads), "TQDM_DISABLE": "1"})
     return Client(cluster), cluster
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity where the system says)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 def _need_dask() -> None:

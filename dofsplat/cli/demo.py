@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from .framing import camera_from_args, check_arguments, check_outputs, render_and_write
+from .framing import (announce_compiling, camera_from_args, check_arguments, check_outputs,
+                      render_and_write)
 from .options import DEFAULT_SIZE, EPILOG, HelpFormatter, add_view_options
 
 
@@ -40,6 +41,7 @@ def demo_view(args):
     the requested size, with the user's camera options applied."""
     from ..demo import demo_scene
 
+    announce_compiling(args)
     width, height = args.size or DEFAULT_SIZE["demo"]
     surfels, base, scene_lens = demo_scene(width, height)
     camera = camera_from_args(args, base)

@@ -21,13 +21,15 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 DEFAULT_SIZE = {"render": (512, 512), "demo": (800, 600)}  # pixels
 DEFAULT_FOV_DEG = 40.0  # vertical field of view for ``render``
+DEFAULT_SENSOR_WIDTH_MM = 36.0  # --focal-length-mm's sensor: full frame, as camera.photographic
 DEFAULT_CUTOFF = 2.5  # the paper's c
 APERTURE_PER_HALF_DIAGONAL = 0.1  # ``render``'s default lens diameter, x bbox half diagonal
 
 UNITS = """\
 units:
   Lengths (--eye, --target, --focus, --aperture, --focal-length, --frustum) are in world
-  units, the units of the model's coordinates. Image sizes and positions (--size,
+  units, the units of the model's coordinates; --focal-length-mm and --sensor-width-mm in
+  millimetres, with world units taken as metres (--scene-scale says otherwise). Image sizes and positions (--size,
   --focus-at) are in pixels, (0, 0) being the top-left corner of the image. Angles are in
   degrees. Colours are display (sRGB) values in 0..1.
 """
@@ -38,6 +40,7 @@ examples:
   dofsplat demo --size 1280x720 --aperture 0.3 -o wide.png
   dofsplat render scan.ply -o scan.png --focus-at 256 300
   dofsplat render scan.ply -o scan.exr --focal-length 0.05 --f-number 1.4 --focus 2.5
+  dofsplat render scan.ply -o portrait.png --focal-length-mm 85 --f-number 1.4
   dofsplat render scan.ply -o scan.png --depth scan-depth.npy --stats scan.json
   dofsplat demo --method postfilter -o postfilter.png
   dofsplat reference --demo -o reference.png --samples 200
@@ -226,8 +229,10 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     cam = p.add_argument_group(
         "camera", "Where the camera is and what it sees. "
         + ("Default: the scene's camera." if is_demo else
-           "Default: looking at the centre of the model's bounding box along -z, from far "
-           "enough away that the whole box is in view."))
+           "Default: the model seen from its most visible side (of the four across the up "
+           "axis: the one whose small pinhole render covers the most pixels; a Gaussian "
+           "scene from +z; a depth capture from its sensor), from as near as keeps the "
+           "whole model in the frame."))
     cam.add_argument("--size", metavar="WxH", type=image_size,
                      help=f"image size in pixels (default: {w}x{h}{demo_size})")
     cam.add_argument("--eye", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),
@@ -242,6 +247,14 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
     view.add_argument("--fov", metavar="DEG", type=fov_degrees,
                       help="vertical field of view in degrees (default: "
                            + (f"{DEMO_FOV_DEG:g})" if is_demo else f"{DEFAULT_FOV_DEG:g})"))
+    view.add_argument("--focal-length-mm", metavar="MM", type=positive_number,
+                      help="a photographic lens of MM millimetres on a --sensor-width-mm "
+                           "sensor: sets the field of view (the sensor's width over the "
+                           "image's, the sensor at the image distance of the lens focused at "
+                           "the focus distance, as dofsplat.photographic), and with "
+                           "--f-number the lens diameter F / n. World units are taken as "
+                           "metres (see --scene-scale); without --f-number the lens diameter "
+                           "is the default one")
     view.add_argument("--frustum", nargs=5, type=finite_number, metavar=("L", "R", "B", "T", "N"),
                       help="the projection as glFrustum: the window [L, R] x [B, T] on the "
                            "near plane at distance N in front of the eye, world units; "
@@ -255,20 +268,29 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
            "middle sphere."
            if is_demo else
            f"diameter {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of the model's "
-           "bounding box, focused on the target."))
+           "bounding box, focused on the surface at the image centre."))
     diameter = lens.add_mutually_exclusive_group()
     diameter.add_argument("--aperture", metavar="A", type=non_negative,
                           help="lens diameter, world units; 0 is a pinhole (all sharp)")
     diameter.add_argument("--f-number", metavar="N", type=positive_number,
-                          help="f-number (f-stop) n, with --focal-length: the lens diameter "
-                               "is F / n, so a smaller n blurs more")
+                          help="f-number (f-stop) n, with --focal-length or "
+                               "--focal-length-mm: the lens diameter is F / n, so a smaller n "
+                               "blurs more")
     diameter.add_argument("--no-dof", action="store_true",
                           help="no depth of field: a pinhole camera, everything sharp")
     lens.add_argument("--focal-length", metavar="F", type=positive_number,
                       help="focal length F, world units (e.g. 0.05 for a 50 mm lens in a "
                            "model measured in metres); with --f-number it sets the lens "
                            "diameter, and the focus distance must exceed it. The field of "
-                           "view is set by --fov or --frustum, not by F")
+                           "view is set by --fov or --frustum, not by F (--focal-length-mm "
+                           "sets both)")
+    lens.add_argument("--sensor-width-mm", metavar="MM", type=positive_number,
+                      help=f"with --focal-length-mm: the sensor's width in millimetres "
+                           f"(default: {DEFAULT_SENSOR_WIDTH_MM:g}, full frame; 23.5 is APS-C)")
+    lens.add_argument("--scene-scale", metavar="M", type=positive_number,
+                      help="with --focal-length-mm: the length of one world unit in metres "
+                           "(default: 1; 0.001 for a model in millimetres), so that the lens "
+                           "and its blur are those of the real camera at the model's size")
     lens.add_argument("--bokeh", choices=("disc", "gaussian"), default="disc",
                       help="the blur's shape: disc (default), the aperture's own image, flat "
                            "with a crisp edge as in a photograph; gaussian, the paper's soft "
@@ -284,7 +306,10 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                             "(default: "
                             + ("the middle sphere; with --eye or --target, the distance "
                                "from eye to target)" if is_demo else
-                               "the distance from eye to target)"))
+                               "the surface seen at the image centre, in a small pinhole "
+                               "render, else the median depth of what it sees; with "
+                               "--target, the distance from eye to target. The summary line "
+                               "names the distance chosen)"))
     focus.add_argument("--focus-at", nargs=2, type=finite_number, metavar=("X", "Y"),
                        help="focus on the surface seen at pixel (X, Y), counted from the "
                             "top-left corner of the image (costs one extra, sharp render)")

@@ -4,7 +4,22 @@ from __future__ import annotations
 
 from ..errors import DofsplatError
 from . import demo, render
+from .framing import ESTIMATE_FROM
 from .options import EPILOG, HelpFormatter, add_input_options, add_view_options, positive_int
+
+# each sample is a full pinhole frame: 1e8 of them would run for years without a word
+MAX_SAMPLES = 100_000
+
+
+def sample_count(text: str) -> int:
+    """--samples: a whole number in 1..MAX_SAMPLES."""
+    import argparse
+
+    value = positive_int(text)
+    if value > MAX_SAMPLES:
+        raise argparse.ArgumentTypeError(f"at most {MAX_SAMPLES:,} lens samples (each one is "
+                                         f"a pinhole frame), got {text!r}")
+    return value
 
 
 def add_parser(commands) -> None:
@@ -26,8 +41,10 @@ def add_parser(commands) -> None:
                            help="render the built-in demo scene, with its camera and lens")
     reference.add_argument("-o", "--output", metavar="OUTPUT", default="reference.png",
                            help="image to write: .png, .npy or .exr (default: reference.png)")
-    reference.add_argument("--samples", metavar="N", type=positive_int, default=200,
-                           help="number of lens samples (default: 200, as in the paper)")
+    reference.add_argument("--samples", metavar="N", type=sample_count, default=200,
+                           help="number of lens samples (default: 200, as in the paper; at "
+                                f"most {MAX_SAMPLES:,}); from {ESTIMATE_FROM:,} on, the time "
+                                "it will take is estimated first, from one pinhole frame")
     add_input_options(reference)
     add_view_options(reference, "reference")
     reference.set_defaults(run=run, method="reference")

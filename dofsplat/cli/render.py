@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 import sys
 
-from .framing import (camera_from_args, capture_camera, check_arguments, check_outputs,
-                      framing_camera, median_depth, render_and_write)
+from .framing import (announce_compiling, camera_from_args, capture_camera, centre_focus,
+                      check_arguments, check_outputs, framing_camera, render_and_write,
+                      settings_from_args)
 from .options import (APERTURE_PER_HALF_DIAGONAL, DEFAULT_SIZE, EPILOG, MODEL_EXTENSIONS,
                       HelpFormatter, add_input_options, add_view_options, default_output,
                       loader_options, prep_cache)
@@ -19,7 +20,8 @@ def add_parser(commands) -> None:
         formatter_class=HelpFormatter,
         help="render a model file: surfels, points, a mesh or Gaussian splats",
         description="Render a model with depth of field. Without camera options the "
-                    "model is framed from its +z side, focused on its centre, with a lens "
+                    "model is seen from its most visible side, filling the frame, focused "
+                    "on the surface at the image centre, with a lens "
                     f"diameter of {APERTURE_PER_HALF_DIAGONAL:g} x the half diagonal of its "
                     "bounding box.")
     render.add_argument("input", metavar="INPUT",
@@ -50,6 +52,7 @@ def load_model(args):
     its LOD hierarchy built or read back when the settings use one."""
     from ..io import load
 
+    announce_compiling(args, args.input)
     surfels = load(args.input, cache=prep_cache(args), **loader_options(args))
     args.load_info = getattr(surfels, "load_info", None)
     if args.shading is None:  # a capture's photographed colours: unshaded (io.pcd)
@@ -67,18 +70,30 @@ def load_model(args):
 
 def model_view(args, surfels):
     """(camera, default focus distance, default lens diameter) of a model: a depth capture
-    seen from its sensor, anything else framed whole; the user's camera options applied."""
+    seen from its sensor, anything else from its most visible side, filling the frame
+    (``framing.framing_camera``); the user's camera options applied. The default focus is
+    the distance to --target where one is given, else the surface seen at the image centre
+    (``framing.centre_focus``); ``args.default_focus_source`` says which, in words."""
     lo, hi = surfels.view_bounds()
     half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
     capture = getattr(surfels, "capture", None)
-    placed = any(getattr(args, a) is not None for a in ("eye", "target", "up", "fov", "frustum"))
+    placed = any(getattr(args, a, None) is not None
+                 for a in ("eye", "target", "up", "fov", "frustum", "focal_length_mm"))
     if capture is not None and not placed:
         # a depth camera's capture: seen from its sensor, through its own frustum
         camera = camera_from_args(args, capture_camera(capture, args.size))
-        default_focus = median_depth(surfels, camera)
     else:
         width, height = args.size or DEFAULT_SIZE["render"]
-        base = framing_camera(args, lo, hi, width, height, getattr(surfels, "up_hint", None))
+        if args.eye is not None or args.target is not None:
+            surfels_to_fit = None  # the user places the camera: the box is framed as before
+        else:
+            surfels_to_fit = surfels
+        base = framing_camera(args, lo, hi, width, height, getattr(surfels, "up_hint", None),
+                              surfels=surfels_to_fit)
         camera = camera_from_args(args, base)
-        default_focus = math.dist(camera.eye, camera.target)
+    if args.target is not None:
+        default_focus, source = math.dist(camera.eye, camera.target), "--target"
+    else:
+        default_focus, source = centre_focus(surfels, camera, settings_from_args(args))
+    args.default_focus_source = source
     return camera, default_focus, APERTURE_PER_HALF_DIAGONAL * half_diagonal

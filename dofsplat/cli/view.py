@@ -28,17 +28,24 @@ def add_parser(commands) -> None:
     srv = p.add_argument_group("server")
     srv.add_argument("--port", metavar="N", type=int, default=8080,
                      help="the port to serve on (default: 8080)")
-    srv.add_argument("--host", metavar="ADDR", default="0.0.0.0",
-                     help="the address to listen on (default: 0.0.0.0, every interface)")
+    srv.add_argument("--host", metavar="ADDR", default="127.0.0.1",
+                     help="the address to listen on (default: 127.0.0.1, this machine only; "
+                          "0.0.0.0 shares the model with every interface's network)")
     srv.add_argument("--no-browser", action="store_true",
                      help="do not open a browser; only print the address")
+    srv.add_argument("--save-dir", metavar="DIR", default=".",
+                     help="where 'Save image' writes its PNG and JSON (default: the current "
+                          "folder; the panel shows the full path)")
     add_input_options(p)
     add_view_options(p, "render")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
-    """Check the options, load the model, then serve until Ctrl-C."""
+    """Check the options, open the page, then load the model (the kernels compile
+    meanwhile, on a first run) and serve until Ctrl-C."""
+    from pathlib import Path
+
     from . import demo, render
 
     if (args.input is None) == (not args.demo):
@@ -48,30 +55,53 @@ def run(args) -> int:
         raise DofsplatError(f"--port must be 0..65535, got {args.port}")
     if args.method != "ours":
         raise DofsplatError("the viewer renders with --method ours")
+    for flag, name in (("--depth", "depth"), ("--stats", "stats")):
+        if getattr(args, name, None) is not None:
+            raise DofsplatError(f"view has no {flag[2:]} output ({flag} is for render and "
+                                "demo; 'Save image' in the page writes the frame)")
+    if not Path(args.save_dir).expanduser().is_dir():
+        raise DofsplatError(f"--save-dir: no such folder: {args.save_dir}")
     try:
         import viser  # noqa: F401 - fail before loading the model
     except ImportError:
         raise DofsplatError("the viewer needs viser: pip install 'dofsplat[view]'") from None
     check_arguments(args)
-    if args.demo:
-        surfels, camera, default_focus, default_aperture = demo.demo_view(args)
-    else:
-        surfels = render.load_model(args)
-        camera, default_focus, default_aperture = render.model_view(args, surfels)
-    settings = settings_from_args(args)
-    args.no_dof = False  # the viewer always has a lens: its diameter may be set to 0
-    lens = lens_from_args(args, args.focus or default_focus, default_aperture)
-    if args.focus_at is not None:
-        from ..render import focus_distance_at
-        from dataclasses import replace
+    if not args.demo:
+        from ..io import model_options
 
-        lens = replace(lens, focus_distance=focus_distance_at(surfels, camera, *args.focus_at,
-                                                              settings=settings))
-    from ..viewer import view
+        model_options(args.input)  # a missing file or an unknown format: before the server
+    from .framing import announce_compiling
+
+    announce_compiling(args, None if args.demo else args.input)
+
+    def load():
+        from ..viewer import Scene
+
+        if args.demo:
+            surfels, camera, default_focus, default_aperture = demo.demo_view(args)
+        else:
+            surfels = render.load_model(args)
+            camera, default_focus, default_aperture = render.model_view(args, surfels)
+        settings = settings_from_args(args)
+        args.no_dof = False  # the viewer always has a lens: its diameter may be set to 0
+        lens = lens_from_args(args, args.focus or default_focus, default_aperture)
+        if args.focus_at is not None:
+            from dataclasses import replace
+
+            from ..render import focus_distance_at
+
+            lens = replace(lens, focus_distance=focus_distance_at(
+                surfels, camera, *args.focus_at, settings=settings))
+        return Scene(surfels, camera, lens, settings)
+
+    from ..viewer import serve
 
     log = (lambda m: None) if args.quiet else None
-    view(surfels, camera, lens, settings, port=args.port, host=args.host,
-         open_browser=not args.no_browser, log=log)
+    from .framing import gaussian_scene
+
+    serve(load, port=args.port, host=args.host, open_browser=not args.no_browser, log=log,
+          save_dir=args.save_dir, say_compiling=False,
+          gaussian=not args.demo and gaussian_scene(args.input))
     if not args.quiet:
         print("dofsplat: viewer stopped", file=sys.stderr)
     return EXIT_OK

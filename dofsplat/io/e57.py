@@ -66,6 +66,15 @@ def read_e57_points(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     parts = []
     try:
+        with open(path, "rb") as f:
+            signature = f.read(8)
+    except OSError:
+        signature = None  # (the reader below says why)
+    if signature is not None and signature != b"ASTM-E57":
+        raise DofsplatError(f"{path}: " + ("the file is empty (0 bytes)" if not signature else
+                                           "not an E57 file (it does not start with the "
+                                           "ASTM-E57 signature)"))
+    try:
         e57 = pye57.E57(str(path), mode="r")
         try:
             for i in range(e57.scan_count):

@@ -49,9 +49,17 @@ def read_mesh(path, *, material: Material | None = None, points: int | str | Non
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
+    if path.stat().st_size == 0:
+        raise DofsplatError(f"{path}: the file is empty (0 bytes)")
     image = load_texture(texture) if texture is not None else None
     scene = _load_scene(path)
-    parts, skipped = scene_parts(scene, str(path))
+    try:
+        parts, skipped = scene_parts(scene, str(path))
+    except (OSError, ValueError, SyntaxError) as e:
+        # Pillow decodes an embedded texture only here, and a damaged one raises OSError
+        # ("broken data stream when reading image file") or ValueError
+        raise DofsplatError(f"{path}: an embedded texture image is damaged: "
+                            f"{library_message(e)}") from e
     if not parts:
         what = f" (it holds {', '.join(skipped)})" if skipped else ""
         raise DofsplatError(f"{path}: no triangle mesh in the file{what}: a mesh without "
