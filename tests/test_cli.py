@@ -464,14 +464,20 @@ def test_ctrl_c_waits_for_the_k_d_tree_threads():
 
     from dofsplat.parallel import interrupt_after
 
+    # Python's own handler, whatever an earlier test in this process left (a Dask cluster
+    # installs its own): the one interrupt_after hands the held Ctrl-C to
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     finished = []
-    with pytest.raises(KeyboardInterrupt):
-        with interrupt_after():
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)  # Python runs the handler here: held, not raised
-            finished.append(True)
-    assert finished == [True]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with interrupt_after():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # Python runs the handler here: held, not raised
+                finished.append(True)
+        assert finished == [True]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_bugs_keep_their_traceback(workdir, monkeypatch):

@@ -199,9 +199,12 @@ def test_ctrl_c_stops_the_server_cleanly():
     import signal
 
     port = _free_port()
+    # Ctrl-C's default in the child even where this run inherited it ignored (a shell's
+    # background job): Python only installs its handler where SIGINT is not ignored
     proc = subprocess.Popen([sys.executable, "-m", "dofsplat", "view", "--demo", "--port",
                              str(port), "--host", "127.0.0.1", "--no-browser"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True).start()
     t0 = time.monotonic()
