@@ -132,7 +132,8 @@ def test_a_cold_first_render_of_a_point_cloud_says_it_compiles_before_preparing(
             proc.kill()
         os.close(master)
     err = text.decode(errors="replace").replace("\r", "\n")
-    from dofsplat.backends.cpu import COMPILE_SECONDS, PREP_COMPILE_SECONDS
+    from dofsplat.backends.cpu import COMPILE_SECONDS
+    from dofsplat.prep import PREP_COMPILE_SECONDS
 
     notice = (f"dofsplat: compiling the rendering and point-cloud kernels, once (about "
               f"{COMPILE_SECONDS + PREP_COMPILE_SECONDS['point-cloud']} s")
@@ -146,6 +147,7 @@ def test_the_notice_names_the_preparation_kernels_that_compile(tmp_path, monkeyp
     """A mesh that is not in the cache of prepared models, with the mesh kernels not yet
     compiled: the notice names them, with their time, before loading; a model read from that
     cache compiles nothing of its preparation and the notice leaves it out."""
+    from dofsplat import prep
     from dofsplat.backends import cpu
     from dofsplat.cli import framing
 
@@ -154,7 +156,7 @@ def test_the_notice_names_the_preparation_kernels_that_compile(tmp_path, monkeyp
         pytest.skip(f"shared data not found: {mesh}")
     monkeypatch.setattr(framing, "_ANNOUNCED", [])
     monkeypatch.setattr(cpu, "kernels_compiled", lambda: True)
-    monkeypatch.setattr(cpu, "prep_kernels_compiled", lambda kind: kind != "mesh")
+    monkeypatch.setattr(prep, "kernels_compiled", lambda kind: kind != "mesh")
     monkeypatch.setattr(framing, "prepared_in_cache", lambda args, model: False)
 
     class Stop(Exception):
@@ -170,7 +172,7 @@ def test_the_notice_names_the_preparation_kernels_that_compile(tmp_path, monkeyp
         cli.main(["render", str(mesh), "-o", "b.png"])
     err = capsys.readouterr().err
     assert err == (f"dofsplat: compiling the mesh kernels, once (about "
-                   f"{cpu.PREP_COMPILE_SECONDS['mesh']} s on 2 cores; numba keeps them for "
+                   f"{prep.PREP_COMPILE_SECONDS['mesh']} s on 2 cores; numba keeps them for "
                    "later runs)\n")
     monkeypatch.setattr(framing, "_ANNOUNCED", [])
     monkeypatch.setattr(framing, "prepared_in_cache", lambda args, model: True)

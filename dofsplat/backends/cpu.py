@@ -492,12 +492,10 @@ def front_chunk(splats, visible, camera: Camera, front, margin: int) -> None:
 # -- helpers -----------------------------------------------------------------------------
 
 _WARM = False
-# Seconds a cold first run spends compiling, measured on the developers' 2-core machine
-# (shared, so a range; README, "numba"): the renderer's kernels (``warm_up``), and the
-# preparation kernels of a point cloud (normals, radii) and of a mesh (sampling), each with
-# the object-space normalisation's kernel, which compile apart from the renderer's.
+# Seconds a cold first run spends compiling the renderer's kernels (``warm_up``), measured
+# on the developers' 2-core machine (shared, so a range; README, "numba"); the preparation's
+# are ``prep.PREP_COMPILE_SECONDS``.
 COMPILE_SECONDS = 90
-PREP_COMPILE_SECONDS = {"point-cloud": 8, "mesh": 4}
 
 
 def kernel_cached(kernel) -> bool:
@@ -517,20 +515,6 @@ def kernels_compiled() -> bool:
     from ..raster.abuffer import rasterize_band
 
     return kernel_cached(rasterize_band)
-
-
-def prep_kernels_compiled(kind: str) -> bool:
-    """``kernels_compiled`` for the preparation of a "point-cloud" or a "mesh"
-    (PREP_COMPILE_SECONDS): its own kernel and the object-space normalisation's."""
-    from ..prep import normalise
-
-    if kind == "point-cloud":
-        from ..prep.pointcloud import _pca_kernel as kernel
-    elif kind == "mesh":
-        from ..prep.meshes import _eliminate as kernel
-    else:
-        raise ValueError(f"unknown preparation {kind!r}")
-    return kernel_cached(kernel) and kernel_cached(normalise._object_sums_kernel)
 
 
 def warm_up() -> None:

@@ -571,12 +571,13 @@ _ANNOUNCED = []  # once per process
 def announce_compiling(args, model=None) -> None:
     """Say so before a command compiles numba kernels (a first run, or a new version), with
     the measured time: the renderer's (``backends.cpu.kernels_compiled``), and a point
-    cloud's or a mesh's preparation kernels (``prep_kernels_compiled``) when ``model`` will
+    cloud's or a mesh's preparation kernels (``prep.kernels_compiled``) when ``model`` will
     be prepared rather than read from the cache of prepared models. Called before loading
     (``render.load_model``) or building the demo scene, so that the notice comes within a
     second or two of the start rather than after the preparation that compiles."""
     if getattr(args, "quiet", False) or _ANNOUNCED:
         return
+    from .. import prep as preparation
     from ..backends import cpu, cpu_gauss
 
     names, seconds = [], 0
@@ -590,9 +591,10 @@ def announce_compiling(args, model=None) -> None:
             and not cpu.kernels_compiled()):
         names.append("rendering")
         seconds += cpu.COMPILE_SECONDS
-    if prep is not None and not cpu.prep_kernels_compiled(prep) and not prepared_in_cache(args, model):
+    if prep is not None and not preparation.kernels_compiled(prep) \
+            and not prepared_in_cache(args, model):
         names.append(prep)
-        seconds += cpu.PREP_COMPILE_SECONDS[prep]
+        seconds += preparation.PREP_COMPILE_SECONDS[prep]
     if not names:
         return
     _ANNOUNCED.append(True)
