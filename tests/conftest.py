@@ -6,8 +6,27 @@ import pytest
 
 import dofsplat as ds
 
+import cudasim
+import skip_guard
 # DOFSPLAT_MAX_SKIPS: more skips than that fail the run (tests/skip_guard.py)
-from skip_guard import pytest_configure, pytest_sessionfinish, pytest_terminal_summary  # noqa: F401
+from skip_guard import pytest_sessionfinish, pytest_terminal_summary  # noqa: F401
+
+
+def pytest_addoption(parser):
+    cudasim.add_option(parser)  # --cudasim: the CUDA tests on numba's simulator
+
+
+def pytest_configure(config):
+    cudasim.configure(config)  # (before any test module imports numba)
+    skip_guard.pytest_configure(config)
+
+
+def pytest_ignore_collect(collection_path, config):
+    return cudasim.ignore_collect(collection_path, config)
+
+
+def pytest_collection_modifyitems(config, items):
+    cudasim.select(config, items)
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -4,7 +4,7 @@ With ``DOFSPLAT_MAX_SKIPS=N`` in the environment, a run in which more than N tes
 fails (exit status 1) and lists each skip's reason: a test that stops running (a tool no
 longer installs, shared data moved) would otherwise pass unnoticed. Tests marked ``cuda``
 are counted apart: without a GPU they skip in every run but the simulator's
-(``tests/run.sh``'s second step), which runs them; with ``DOFSPLAT_REQUIRE_CUDA=1`` (they
+(``pytest --cudasim``, tests/cudasim.py), which runs them; with ``DOFSPLAT_REQUIRE_CUDA=1`` (they
 must run) they count like the others.
 """
 
@@ -64,4 +64,4 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         write(f"skipped {len(counted)}, at most {LIMIT}={limit}")
     if cuda:
         write(f"and {len(cuda)} CUDA test(s), not counted: without a GPU they run on numba's CUDA "
-              "simulator (tests/run.sh)")
+              "simulator (pytest --cudasim)")

@@ -3,7 +3,7 @@
 The parity tests run on a GPU where one works, or on numba's CUDA simulator with
 ``DOFSPLAT_TEST_CUDASIM=1`` (every CUDA thread is a Python thread there: the scenes are
 tiny), and are skipped otherwise; ``DOFSPLAT_REQUIRE_CUDA=1`` turns that skip into an error
-(for the GPU machine). They are marked ``cuda``: tests/run.sh (CI) runs a selection of them
+(for the GPU machine). They are marked ``cuda``: `pytest --cudasim` (the README's test command, CI) runs a selection of them
 on the simulator, which must launch every kernel of backends/cuda.py (the last parity test
 checks). The device-choice and CLI tests run everywhere.
 """
@@ -43,7 +43,7 @@ _skip_without_cuda = pytest.mark.skipif(
 
 
 def needs_cuda(test):
-    """Skipped without a GPU or the simulator; marked ``cuda``, which tests/run.sh's simulator
+    """Skipped without a GPU or the simulator; marked ``cuda``, which `pytest --cudasim`'s simulator
     step selects and tests/skip_guard.py counts apart."""
     return pytest.mark.cuda(_skip_without_cuda(test))
 
@@ -370,7 +370,7 @@ def test_probe_kernel_writes_one():
 @needs_cuda
 def test_every_kernel_was_launched():
     """The tests above (run before this one, in file order) launch every kernel of
-    backends/cuda.py: tests/run.sh's simulator step runs a selection of them that must."""
+    backends/cuda.py: `pytest --cudasim` runs a selection of them that must."""
     from dofsplat.backends import cuda as bc
 
     kernels = _kernel_names(bc)

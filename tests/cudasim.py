@@ -1,0 +1,54 @@
+"""``pytest --cudasim``: the CUDA backend's tests on numba's CUDA simulator (hooks that
+tests/conftest.py imports).
+
+The README's test command runs the suite, where without a GPU the CUDA tests skip, then
+``python3 -m pytest -q --cudasim``: numba's own ``numba.cuda`` simulates the kernels on the
+CPU (no GPU, no numba-cuda). NUMBA_ENABLE_CUDASIM is read when numba is first imported and
+holds for the process, hence a second pytest; the option sets it (and
+DOFSPLAT_TEST_CUDASIM, DOFSPLAT_REQUIRE_CUDA: the simulator must load; DOFSPLAT_MAX_SKIPS=0:
+nothing may skip) before any test module imports numba. Every CUDA thread is a Python thread
+there, so of the whole-frame tests only the one with 4 lens parts and LOD runs: with the
+stage tests it launches every kernel of dofsplat/backends/cuda.py, which the module's last
+test checks.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+SIMULATED_FILE = "test_cuda.py"
+# the whole-frame parity cases left out on the simulator: they launch no kernel that
+# test_frame_matches_cpu[A2-lod] does not
+LEFT_OUT = "test_frame_matches_cpu"
+KEPT = "A2-lod"
+
+
+def add_option(parser) -> None:
+    parser.addoption("--cudasim", action="store_true",
+                     help="run the CUDA backend's tests on numba's CUDA simulator only")
+
+
+def configure(config) -> None:
+    if config.getoption("--cudasim"):
+        os.environ.update(DOFSPLAT_TEST_CUDASIM="1", NUMBA_ENABLE_CUDASIM="1",
+                          DOFSPLAT_REQUIRE_CUDA="1", DOFSPLAT_MAX_SKIPS="0")
+
+
+def ignore_collect(collection_path: Path, config) -> bool | None:
+    if config.getoption("--cudasim") and collection_path.suffix == ".py" \
+            and collection_path.name != SIMULATED_FILE:
+        return True
+    return None
+
+
+def select(config, items) -> None:
+    if not config.getoption("--cudasim"):
+        return
+    keep, drop = [], []
+    for item in items:
+        whole_frame = item.name.startswith(LEFT_OUT) and KEPT not in item.name
+        (drop if whole_frame or item.get_closest_marker("cuda") is None else keep).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
