@@ -99,17 +99,14 @@ class RenderSettings:
         if self.reconstruction not in RECONSTRUCTIONS:
             raise DofsplatError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
                                 f"got {self.reconstruction!r}")
-        if isinstance(self.lens_samples, bool) or not isinstance(self.lens_samples, (int, np.integer)) \
-                or not 1 <= self.lens_samples <= MAX_LENS_SAMPLES:
-            raise DofsplatError(f"lens_samples must be an integer in 1..{MAX_LENS_SAMPLES}, "
-                                f"got {self.lens_samples!r}")
+        for name in ("lens_samples", "gaussian_lens_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
+                    or not 1 <= value <= MAX_LENS_SAMPLES:
+                raise DofsplatError(f"{name} must be an integer in 1..{MAX_LENS_SAMPLES}, "
+                                    f"got {value!r}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
-        if isinstance(self.gaussian_lens_samples, bool) \
-                or not isinstance(self.gaussian_lens_samples, (int, np.integer)) \
-                or not 1 <= self.gaussian_lens_samples <= MAX_LENS_SAMPLES:
-            raise DofsplatError(f"gaussian_lens_samples must be an integer in "
-                                f"1..{MAX_LENS_SAMPLES}, got {self.gaussian_lens_samples!r}")
         if self.gaussian_blur not in GAUSSIAN_BLURS:
             raise DofsplatError(f"gaussian_blur must be one of {', '.join(GAUSSIAN_BLURS)}, "
                                 f"got {self.gaussian_blur!r}")

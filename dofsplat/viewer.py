@@ -352,18 +352,17 @@ def compile_kernels(startup: Startup, settings: RenderSettings | None = None,
     The page says so meanwhile."""
     from .backends import cpu, cpu_gauss
 
-    if gaussian:
-        cpu = cpu_gauss  # (its kernels_compiled, COMPILE_SECONDS and warm_up)
-    if (settings is not None and settings.device == "cuda") or cpu.kernels_compiled():
+    kernels = cpu_gauss if gaussian else cpu  # (kernels_compiled, COMPILE_SECONDS, warm_up)
+    if (settings is not None and settings.device == "cuda") or kernels.kernels_compiled():
         return None
-    seconds = getattr(cpu, "COMPILE_SECONDS", 60)
+    seconds = kernels.COMPILE_SECONDS
     startup.begin("kernels", f"compiling the rendering kernels (once, about {seconds} s)…",
                   say)
     errors = []
 
     def run():
         try:
-            cpu.warm_up()
+            kernels.warm_up()
         except Exception as e:  # noqa: BLE001 - raised again by the server's thread
             errors.append(e)
         finally:

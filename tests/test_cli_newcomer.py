@@ -498,7 +498,7 @@ def test_animate_says_what_an_interrupt_kept_and_that_the_rerun_resumes(workdir,
     monkeypatch.setattr(sequence, "render_frame", interrupted_after_two)
     status, _, err = run_main(argv, capsys)
     assert status == 130
-    assert err.splitlines()[-1] == (f"dofsplat: interrupted: 2 of 4 frames kept in frames; run "
+    assert err.splitlines()[-1] == ("dofsplat: interrupted: 2 of 4 frames kept in frames; run "
                                     "the same command again to resume"), err
     monkeypatch.setattr(sequence, "render_frame", render_frame)
     status, _, err = run_main(argv, capsys)

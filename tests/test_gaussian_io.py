@@ -24,8 +24,7 @@ from dofsplat import cli
 from dofsplat.errors import DofsplatError
 from dofsplat.gaussians import Gaussians
 from dofsplat.io import LOADERS, load, model_options, save_surfels
-from dofsplat.io.gaussians import (SH_C0, gaussians_to_surfels, quaternion_matrices,
-                                   write_gaussian_ply)
+from dofsplat.io.gaussians import SH_C0, gaussians_to_surfels, quaternion_matrices
 from dofsplat.io.spz import mirror_axes
 from dofsplat.surfels import Surfels
 

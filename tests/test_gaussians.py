@@ -123,7 +123,6 @@ def test_two_gaussians_composite_in_depth_order():
     for order in ([0, 1], [1, 0]):
         r = ds.render(pair(order), cam, None, ds.RenderSettings())
         rgb = linear_to_srgb(r.rgb[16, 16].astype(np.float64))
-        fx = intrinsics(cam)[0]
         # each Gaussian's peak at the centre pixel, whose centre is the image centre
         a1, a2 = 0.6, 0.9
         np.testing.assert_allclose(rgb, [a1, 0, a2 * (1 - a1)], atol=2e-3)
@@ -325,8 +324,6 @@ def test_lod_cut_is_the_scene_in_focus_and_coarser_with_blur():
     """In focus (no lens) the frame is the scene's, bit for bit, LOD or not; with blur the
     cut draws fewer Gaussians the larger the blur, every Gaussian covered once (the cut's
     rows stand for disjoint sets of leaves that together are all of them)."""
-    import dataclasses
-
     from dofsplat.gauss.lod import select_cut, tree_for
 
     g = scene(n=400, seed=7, degree=1)
@@ -357,8 +354,6 @@ def test_lod_frame_stays_near_the_full_frame():
     under half the Gaussians and stays above 35 dB PSNR against the frame of every Gaussian
     (a random scene: its Gaussians lie apart, so merges are few and the loss small; on
     the shared captures the loss against the lens reference is bench/RESULTS.md's)."""
-    import dataclasses
-
     from dofsplat.metrics import psnr
 
     g = scene(n=600, seed=11, degree=0, spread=0.6)

@@ -164,9 +164,8 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
     surface too thin; only the hidden ones are to go)."""
     from ..camera import effective_diameter, lens_camera
 
-    small = Camera(eye=camera.eye, target=camera.target, up=camera.up,
-                   width=max(1, camera.width // scale), height=max(1, camera.height // scale),
-                   fov_y=camera.fov_y, frustum=camera.frustum, near=camera.near)
+    small = replace(camera, width=max(1, camera.width // scale),
+                    height=max(1, camera.height // scale))
     radius = 0.5 * effective_diameter(camera, lens)
     offsets = [(0.0, 0.0)] + [(radius * math.cos(2 * math.pi * k / views),
                                radius * math.sin(2 * math.pi * k / views)) for k in range(views)]

@@ -87,7 +87,7 @@ def add_parser(commands) -> None:
 def run(args) -> int:
     """Check everything, load the model once, plan the frames, render, assemble."""
     from .. import sequence
-    from . import demo, render
+    from . import render
 
     _check(args)
     check_arguments(args)
@@ -102,11 +102,7 @@ def run(args) -> int:
     if out.suffix.lower() == ".mp4":
         _need_av()
 
-    if args.demo:
-        surfels, camera, default_focus, default_aperture = demo.demo_view(args)
-    else:
-        surfels = render.load_model(args)
-        camera, default_focus, default_aperture = render.model_view(args, surfels)
+    surfels, camera, default_focus, default_aperture = render.model_and_view(args)
     settings = settings_from_args(args)
     lens = None
     if settings.dof:

@@ -47,6 +47,18 @@ def run(args) -> int:
     return render_and_write(args, outputs, surfels, camera, default_focus, default_aperture)
 
 
+def model_and_view(args):
+    """(model, camera, default focus distance, default lens diameter): the demo scene's
+    with --demo, else the model file's (``load_model``, ``model_view``); for ``view`` and
+    ``animate``."""
+    if args.demo:
+        from .demo import demo_view
+
+        return demo_view(args)
+    surfels = load_model(args)
+    return (surfels, *model_view(args, surfels))
+
+
 def load_model(args):
     """The model file as surfels (from the cache of prepared models where it is there), with
     its LOD hierarchy built or read back when the settings use one."""

@@ -46,7 +46,7 @@ def run(args) -> int:
     meanwhile, on a first run) and serve until Ctrl-C."""
     from pathlib import Path
 
-    from . import demo, render
+    from . import render
 
     if (args.input is None) == (not args.demo):
         raise DofsplatError("give either a model file or --demo (the built-in scene), not both"
@@ -77,11 +77,7 @@ def run(args) -> int:
     def load():
         from ..viewer import Scene
 
-        if args.demo:
-            surfels, camera, default_focus, default_aperture = demo.demo_view(args)
-        else:
-            surfels = render.load_model(args)
-            camera, default_focus, default_aperture = render.model_view(args, surfels)
+        surfels, camera, default_focus, default_aperture = render.model_and_view(args)
         settings = settings_from_args(args)
         args.no_dof = False  # the viewer always has a lens: its diameter may be set to 0
         lens = lens_from_args(args, args.focus or default_focus, default_aperture)

@@ -56,7 +56,7 @@ import numpy as np
 
 from ..colors import srgb_to_linear
 from ..errors import DofsplatError
-from ..gaussians import Gaussians, quaternion_matrices  # (quaternion_matrices: re-exported)
+from ..gaussians import Gaussians, quaternion_matrices  # noqa: F401 - (re-exported)
 from ..surfels import Material, Surfels
 from .images import atomic_write
 
