@@ -68,6 +68,27 @@ def front_camera(width=64, height=64, distance=2.0, fov=40.0):
                      height=height, fov_y=fov, near=0.01)
 
 
+def gaussian_ply_columns(positions, log_scales, rotations, logits, sh):
+    """The vertex columns of a 3DGS PLY as the trainers write them, float32 copies in their
+    order: x y z, nx ny nz (zeros), f_dc_0..2, f_rest_* (channel-major: red's K - 1
+    coefficients, then green's, then blue's), opacity, scale_0..2, rot_0..3. positions
+    (N, 3); log_scales (N, 3), log sigma; rotations (N, 4), w first, not normalised;
+    logits (N,), the opacity before its sigmoid; sh (N, K, 3), K = (degree + 1)^2."""
+    positions, log_scales, rotations, sh = (np.asarray(a) for a in (positions, log_scales,
+                                                                   rotations, sh))
+    n, k = sh.shape[:2]
+    cols = {a: positions[:, i] for i, a in enumerate("xyz")}
+    cols.update({a: np.zeros(n) for a in ("nx", "ny", "nz")})
+    cols.update({f"f_dc_{c}": sh[:, 0, c] for c in range(3)})
+    for c in range(3):
+        for j in range(1, k):
+            cols[f"f_rest_{c * (k - 1) + j - 1}"] = sh[:, j, c]
+    cols["opacity"] = logits
+    cols.update({f"scale_{i}": log_scales[:, i] for i in range(3)})
+    cols.update({f"rot_{i}": rotations[:, i] for i in range(4)})
+    return {name: np.array(v, np.float32) for name, v in cols.items()}
+
+
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 
 

@@ -110,7 +110,7 @@ def test_module_error_is_one_line(tmp_path):
                            "-o", "out.png"], cwd=tmp_path, capture_output=True, text=True,
                           timeout=60)
     assert_one_line_error(proc.returncode, proc.stderr)
-    assert "missing.ply" in proc.stderr
+    assert "no such file: missing.ply" in proc.stderr
     assert os.listdir(tmp_path) == []
 
 
@@ -255,67 +255,106 @@ def _model_with_unknown_extension(path):
     path.write_text("1 2 3\n")
 
 
+# each case: (argv, a file to make first or None, what the error must say: a part of its
+# one line that names the option or file and the reason, so that another error with the
+# same status does not pass)
 BAD_RENDER = {
-    "missing-input": (["render", "missing.ply", "-o", "out.png"], None),
+    "missing-input": (["render", "missing.ply", "-o", "out.png"], None,
+                      "error: no such file: missing.ply"),
     "unknown-input-extension": (["render", "model.xyz", "-o", "out.png"],
-                                ("model.xyz", _model_with_unknown_extension)),
+                                ("model.xyz", _model_with_unknown_extension),
+                                "model.xyz: unsupported model format; supported extensions: "),
     "unreadable-input": (["render", "garbage.ply", "-o", "out.png"],
-                         ("garbage.ply", _garbage_ply)),
-    "size-zero": (["render", "{ply}", "-o", "out.png", "--size", "0x5"], None),
-    "size-text": (["render", "{ply}", "-o", "out.png", "--size", "abc"], None),
+                         ("garbage.ply", _garbage_ply),
+                         "garbage.ply: not a PLY file (it does not start with 'ply')"),
+    "size-zero": (["render", "{ply}", "-o", "out.png", "--size", "0x5"], None,
+                  "argument --size: the image needs at least 1x1 pixels, got '0x5'"),
+    "size-text": (["render", "{ply}", "-o", "out.png", "--size", "abc"], None,
+                  "argument --size: expected WIDTHxHEIGHT in pixels such as 640x480, "
+                  "got 'abc'"),
     "negative-f-number": (["render", "{ply}", "-o", "out.png", "--focal-length", "0.05",
-                           "--f-number", "-2"], None),
-    "f-number-alone": (["render", "{ply}", "-o", "out.png", "--f-number", "2"], None),
+                           "--f-number", "-2"], None,
+                          "argument --f-number: must be > 0, got '-2'"),
+    "f-number-alone": (["render", "{ply}", "-o", "out.png", "--f-number", "2"], None,
+                       "--f-number needs --focal-length or --focal-length-mm"),
     "focus-inside-focal-length": (["render", "{ply}", "-o", "out.png", "--focal-length",
-                                   "2", "--f-number", "2", "--focus", "1.5"], None),
+                                   "2", "--f-number", "2", "--focus", "1.5"], None,
+                                  "the focus distance 1.5 must exceed the focal length 2"),
+    # the default focus, the distance to the model's centre (3.03 units), checked later
     "default-focus-inside-focal-length": (["render", "{ply}", "-o", "out.png",
-                                           "--focal-length", "100", "--f-number", "2"], None),
-    "cutoff-zero": (["render", "{ply}", "-o", "out.png", "--cutoff", "0"], None),
-    "cutoff-text": (["render", "{ply}", "-o", "out.png", "--cutoff", "x"], None),
-    "unsupported-output": (["render", "{ply}", "-o", "out.jpg"], None),
-    "missing-output-dir": (["render", "{ply}", "-o", "nodir/out.png"], None),
-    "bad-depth-output": (["render", "{ply}", "-o", "out.png", "--depth", "depth.txt"], None),
-    "same-output-twice": (["render", "{ply}", "-o", "out.npy", "--depth", "out.npy"], None),
-    "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None),
-    "output-in-a-file": (["render", "{ply}", "-o", "f.ply/out.png"], ("f.ply", _garbage_ply)),
-    "k-too-small": (["render", "{ply}", "-o", "out.png", "--k", "1"], None),
-    "k-too-large": (["render", "{ply}", "-o", "out.png", "--k", "1000"], None),
+                                           "--focal-length", "100", "--f-number", "2"], None,
+                                          "must exceed the focal length F = 100"),
+    "cutoff-zero": (["render", "{ply}", "-o", "out.png", "--cutoff", "0"], None,
+                    "argument --cutoff: must be > 0, got '0'"),
+    "cutoff-text": (["render", "{ply}", "-o", "out.png", "--cutoff", "x"], None,
+                    "argument --cutoff: expected a number, got 'x'"),
+    "unsupported-output": (["render", "{ply}", "-o", "out.jpg"], None,
+                           "out.jpg: unsupported image format '.jpg'"),
+    "missing-output-dir": (["render", "{ply}", "-o", "nodir/out.png"], None,
+                           "nodir/out.png: directory 'nodir' does not exist"),
+    "bad-depth-output": (["render", "{ply}", "-o", "out.png", "--depth", "depth.txt"], None,
+                         "depth.txt: unsupported image format '.txt'"),
+    "same-output-twice": (["render", "{ply}", "-o", "out.npy", "--depth", "out.npy"], None,
+                          "the depth output and the image output are the same file: out.npy"),
+    "stats-dir-missing": (["render", "{ply}", "-o", "out.png", "--stats", "no/s.json"], None,
+                          "no/s.json: directory 'no' does not exist"),
+    "output-in-a-file": (["render", "{ply}", "-o", "f.ply/out.png"], ("f.ply", _garbage_ply),
+                         "f.ply/out.png: 'f.ply' is a file, not a directory"),
+    "k-too-small": (["render", "{ply}", "-o", "out.png", "--k", "1"], None,
+                    "argument --k: must be from 4 to 256 neighbours, got '1'"),
+    "k-too-large": (["render", "{ply}", "-o", "out.png", "--k", "1000"], None,
+                    "argument --k: must be from 4 to 256 neighbours, got '1000'"),
     # a folder no one may write in, root included (os.access said yes to root, and the
-    # error came after the render as a traceback, until 2026-11-27)
-    "unwritable-output-dir": (["render", "{ply}", "-o", "/proc/out.png"], None),
+    # error came after the render as a traceback, until 2026-11-27); the reason in brackets
+    # is the system's, which differs between users
+    "unwritable-output-dir": (["render", "{ply}", "-o", "/proc/out.png"], None,
+                              "/proc/out.png: directory '/proc' is not writable"),
     "unwritable-depth-dir": (["render", "{ply}", "-o", "out.png", "--depth", "/proc/d.npy"],
-                             None),
+                             None, "/proc/d.npy: directory '/proc' is not writable"),
     "unwritable-stats-dir": (["render", "{ply}", "-o", "out.png", "--stats", "/proc/s.json"],
-                             None),
+                             None, "/proc/s.json: directory '/proc' is not writable"),
     "focus-at-outside": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
-                          "--focus-at", "96", "10"], None),
+                          "--focus-at", "96", "10"], None,
+                         "--focus-at pixel (96, 10) lies outside the 96x72 image"),
     "focus-at-background": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
-                             "--focus-at", "0", "0"], None),
+                             "--focus-at", "0", "0"], None,
+                            "no surface is seen at pixel (0, 0) to focus on"),
     "focus-and-focus-at": (["render", "{ply}", "-o", "out.png", "--focus", "2",
-                            "--focus-at", "1", "1"], None),
+                            "--focus-at", "1", "1"], None,
+                           "argument --focus-at: not allowed with argument --focus"),
     "fov-and-frustum": (["render", "{ply}", "-o", "out.png", "--fov", "30", "--frustum",
-                         "-1", "1", "-1", "1", "1"], None),
+                         "-1", "1", "-1", "1", "1"], None,
+                        "argument --frustum: not allowed with argument --fov"),
     "frustum-aspect": (["render", "{ply}", "-o", "out.png", "--size", SIZE_ARG,
-                        "--frustum", "-1", "1", "-1", "1", "1"], None),
+                        "--frustum", "-1", "1", "-1", "1", "1"], None,
+                       "frustum aspect (R-L)/(T-B) = 1.0000 differs from the image aspect "
+                       "W/H = 1.3333"),
     "frustum-near-zero": (["render", "{ply}", "-o", "out.png", "--frustum", "-1", "1",
-                           "-1", "1", "0"], None),
-    "fov-range": (["render", "{ply}", "-o", "out.png", "--fov", "180"], None),
+                           "-1", "1", "0"], None,
+                          "--frustum needs L < R, B < T and N > 0, got -1 1 -1 1 0"),
+    "fov-range": (["render", "{ply}", "-o", "out.png", "--fov", "180"], None,
+                  "argument --fov: must be between 0 and 180 degrees, got '180'"),
     "up-along-view": (["render", "{ply}", "-o", "out.png", "--eye", "0", "0", "3", "--up", "0",
-                       "0", "1"], None),
+                       "0", "1"], None,
+                      "camera up vector is parallel to the view direction"),
     "background-range": (["render", "{ply}", "-o", "out.png", "--background", "2", "0",
-                          "0"], None),
-    "eye-too-few": (["render", "{ply}", "-o", "out.png", "--eye", "1", "2"], None),
-    "unknown-option": (["render", "{ply}", "-o", "out.png", "--bogus"], None),
-    "shading-choice": (["render", "{ply}", "-o", "out.png", "--shading", "flat"], None),
-    "no-command": ([], None),
-    "unknown-command": (["paint"], None),
-    "demo-bad-aperture": (["demo", "--aperture", "-1"], None),
+                          "0"], None, "argument --background: must be in 0..1, got '2'"),
+    "eye-too-few": (["render", "{ply}", "-o", "out.png", "--eye", "1", "2"], None,
+                    "argument --eye: expected 3 arguments"),
+    "unknown-option": (["render", "{ply}", "-o", "out.png", "--bogus"], None,
+                       "unrecognized arguments: --bogus"),
+    "shading-choice": (["render", "{ply}", "-o", "out.png", "--shading", "flat"], None,
+                       "argument --shading: invalid choice: 'flat'"),
+    "no-command": ([], None, "no command given: use 'dofsplat render INPUT -o OUTPUT'"),
+    "unknown-command": (["paint"], None, "argument COMMAND: invalid choice: 'paint'"),
+    "demo-bad-aperture": (["demo", "--aperture", "-1"], None,
+                          "argument --aperture: must be >= 0, got '-1'"),
 }
 
 
 @pytest.mark.parametrize("case", list(BAD_RENDER))
 def test_user_mistakes(case, plane_ply, workdir, capsys):
-    argv, make_input = BAD_RENDER[case]
+    argv, make_input, message = BAD_RENDER[case]
     if make_input is not None:
         name, make = make_input
         make(workdir / name)
@@ -323,6 +362,7 @@ def test_user_mistakes(case, plane_ply, workdir, capsys):
     argv = [a.format(ply=plane_ply) for a in argv]
     status, out, err = run_main(argv, capsys)
     assert_one_line_error(status, err)
+    assert message in err, err
     assert out == ""
     assert set(os.listdir(workdir)) == before  # no output, no temporary left behind
 
@@ -604,14 +644,17 @@ def test_lod_cache_is_rebuilt_for_a_changed_model(plane_ply, workdir, capsys):
 def test_show_lod_needs_lod(plane_ply, workdir, capsys):
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--show-lod", "--no-lod"], capsys)
     assert_one_line_error(status, err)
-    assert "--show-lod needs" in err and not os.path.exists("x.png")
+    assert "--show-lod needs the hierarchy: drop --no-lod" in err
+    assert not os.path.exists("x.png")
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-blur-fraction", "1.5"], capsys)
     assert_one_line_error(status, err)
-    assert "(0, 1]" in err and not os.path.exists("x.png")
+    assert "argument --lod-blur-fraction: expected a number in (0, 1], got '1.5'" in err
+    assert not os.path.exists("x.png")
     status, _, err = run_main(["render", plane_ply, "-o", "x.png", "--lod-color-tolerance", "-1"],
                               capsys)
     assert_one_line_error(status, err)
-    assert ">= 0" in err and not os.path.exists("x.png")
+    assert "argument --lod-color-tolerance: must be >= 0, got '-1'" in err
+    assert not os.path.exists("x.png")
 
 
 def test_lod_color_tolerance_off(plane_ply, workdir, capsys):
@@ -636,10 +679,13 @@ def test_lod_min_node(plane_ply, workdir, capsys):
                               capsys)
     assert status == 0, err
     assert json.load(open("x.json"))["settings"]["lod_min_node"] == 4
-    for bad in ("1", "65", "two"):
+    for bad, reason in [("1", "the smallest node must be 2..64 surfels, got 1"),
+                        ("65", "the smallest node must be 2..64 surfels, got 65"),
+                        ("two", "expected a whole number, got 'two'")]:
         status, _, err = run_main(["render", plane_ply, "-o", "y.png", "--lod-min-node", bad],
                                   capsys)
         assert_one_line_error(status, err)
+        assert f"argument --lod-min-node: {reason}" in err, err
         assert not os.path.exists("y.png")
     from dofsplat import DofsplatError, RenderSettings
 

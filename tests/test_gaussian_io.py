@@ -16,7 +16,7 @@ import zipfile
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, gaussian_ply_columns
 from PIL import Image
 from plyfile import PlyData, PlyElement
 
@@ -51,19 +51,10 @@ def random_scene(n, k=16, seed=0):
 
 
 def write_3dgs_ply(path, scene, extra=None, text=False):
-    """A trainers' PLY of the scene (f_rest channel-major), with extra float columns."""
-    n, k = scene["sh"].shape[:2]
-    cols = {a: scene["positions"][:, i] for i, a in enumerate("xyz")}
-    cols.update({a: np.zeros(n, np.float32) for a in ("nx", "ny", "nz")})
-    cols.update({f"f_dc_{c}": scene["sh"][:, 0, c] for c in range(3)})
-    for c in range(3):
-        for j in range(1, k):
-            cols[f"f_rest_{c * (k - 1) + j - 1}"] = scene["sh"][:, j, c]
-    cols["opacity"] = scene["logits"]
-    cols.update({f"scale_{i}": scene["log_scales"][:, i] for i in range(3)})
-    cols.update({f"rot_{i}": scene["rotations"][:, i] for i in range(4)})
+    """A trainers' PLY of the scene (``gaussian_ply_columns``), with extra float columns."""
+    cols = gaussian_ply_columns(**scene)
     cols.update(extra or {})
-    rec = np.empty(n, dtype=[(name, "<f4") for name in cols])
+    rec = np.empty(len(cols["x"]), dtype=[(name, "<f4") for name in cols])
     for name, v in cols.items():
         rec[name] = v
     PlyData([PlyElement.describe(rec, "vertex")], text=text).write(str(path))

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA, front_camera
+from conftest import SHARED_DATA, front_camera, gaussian_ply_columns
 from PIL import Image
 from plyfile import PlyData, PlyElement
 
@@ -358,16 +358,18 @@ def test_ply_mesh_vertices_mode_and_bad_faces(tmp_path):
 
 
 def gaussian_columns(n, rng=None, **overrides):
+    """The 3DGS PLY columns (``gaussian_ply_columns``) of n random Gaussians of degree 0,
+    sigmas e^-4 to e^-2, mostly opaque; the columns named in ``overrides`` replaced."""
     rng = rng or np.random.default_rng(0)
-    cols = {"x": rng.normal(size=n), "y": rng.normal(size=n), "z": rng.normal(size=n),
-            "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n),
-            "f_dc_0": rng.normal(size=n), "f_dc_1": rng.normal(size=n),
-            "f_dc_2": rng.normal(size=n), "opacity": rng.normal(size=n) + 2,
-            "scale_0": rng.uniform(-4, -2, n), "scale_1": rng.uniform(-4, -2, n),
-            "scale_2": rng.uniform(-4, -2, n),
-            **{f"rot_{i}": rng.normal(size=n) for i in range(4)}}
-    cols.update(overrides)
-    return {k: np.asarray(v, np.float32) for k, v in cols.items()}
+
+    def normal(k):
+        return np.stack([rng.normal(size=n) for _ in range(k)], axis=1)
+
+    positions, f_dc, logits = normal(3), normal(3), rng.normal(size=n) + 2
+    log_scales = np.stack([rng.uniform(-4, -2, n) for _ in range(3)], axis=1)
+    cols = gaussian_ply_columns(positions, log_scales, normal(4), logits, f_dc[:, None, :])
+    cols.update({k: np.asarray(v, np.float32) for k, v in overrides.items()})
+    return cols
 
 
 def test_gaussians_axes_colour_opacity(tmp_path):
