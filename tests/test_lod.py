@@ -710,26 +710,18 @@ def _cut(tree, s, cam, lens):
     return np.flatnonzero(flags == 1)
 
 
-@pytest.mark.parametrize("bokeh, blades", [("gaussian", 0), ("disc", 0), ("disc", 6)])
-def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
-    """Projection of an LOD cut (anisotropic V^q through circumellipse, shaded colour
-    gradients) and its rasterisation against slow.py."""
+def _cut_against_the_twin(s, tree, cam, lens, st):
+    """The projection of the LOD cut of ``st``'s stop (``select_splats``) against slow.py's,
+    rtol 2e-4 (float32 rows), and the frame drawn from it against ``rasterize_reference``
+    on the same splats, 1e-4 (float32 accumulation); the cut (a ``SplatSource``) and the
+    fast projection (splats, bounding boxes, visible)."""
     from dofsplat.backends.cpu import shade_splats
     from dofsplat.render import aperture_shape, merge_parameters
     from dofsplat.slow import rasterize_reference
-    from dofsplat.splat.project import BY, RX
 
-    s, tree = bumpy
-    cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
-    lens = ds.ThinLens(focus_distance=1.5, aperture=0.3, bokeh=bokeh, blades=blades)
-    # select_splats' default stop, below (the paper's: every node may be drawn)
-    st = ds.RenderSettings(lod_blur_fraction=1.0, lod_color_tolerance=math.inf,
-                           lod_min_node=2)
-    src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff, 1.0, True)
-    inner = src.level > 0
-    assert inner.sum() > 20
-    # the gather derives each node's level from its count: the tree's stored height
-    np.testing.assert_array_equal(src.level, by_node(tree, s).level[_cut(tree, s, cam, lens)])
+    src = select_splats(tree, s, cam, *lens.coc_coefficients(cam), st.cutoff,
+                        st.lod_pixel_threshold, True, st.lod_blur_fraction,
+                        st.lod_color_tolerance, st.lod_min_node)
     as_surfels = ds.Surfels(positions=src.positions, normals=src.normals, radius=src.ru,
                             colors=src.colors, opacity=src.opacity,
                             weight=src.area / (src.ru * src.rv))
@@ -741,9 +733,6 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
     np.testing.assert_array_equal(fast[2], slow[2])
     vis = fast[2]
     np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=2e-4, atol=1e-6)
-    # the nodes carry colour slopes (the surfels' colours are random), the leaves none
-    slopes = np.abs(fast[0][:, RX:BY + 1])
-    assert slopes[vis & inner].max() > 1e-3 and slopes[vis & ~inner].max() == 0
     # the rasteriser on these splats, its colour slopes included
     res = ds.render(s, cam, lens, st, tree)
     assert res.stats["splats_selected"] == src.size
@@ -751,6 +740,55 @@ def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
                               merge=merge_parameters(cam, lens, st),
                               blades=aperture_shape(lens, st)[1])[0]
     np.testing.assert_allclose(res.image, img, atol=1e-4)
+    return src, fast
+
+
+@pytest.mark.parametrize("bokeh, blades", [("gaussian", 0), ("disc", 0), ("disc", 6)])
+def test_node_splats_equal_the_numpy_twin(bumpy, bokeh, blades):
+    """Projection of an LOD cut (anisotropic V^q through circumellipse, shaded colour
+    gradients) and its rasterisation against slow.py."""
+    from dofsplat.splat.project import BY, RX
+
+    s, tree = bumpy
+    cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
+    lens = ds.ThinLens(focus_distance=1.5, aperture=0.3, bokeh=bokeh, blades=blades)
+    # select_splats' default stop (the paper's: every node may be drawn)
+    st = ds.RenderSettings(lod_blur_fraction=1.0, lod_color_tolerance=math.inf,
+                           lod_min_node=2)
+    src, fast = _cut_against_the_twin(s, tree, cam, lens, st)
+    inner = src.level > 0
+    assert inner.sum() > 20
+    # the gather derives each node's level from its count: the tree's stored height
+    np.testing.assert_array_equal(src.level, by_node(tree, s).level[_cut(tree, s, cam, lens)])
+    # the nodes carry colour slopes (the surfels' colours are random), the leaves none
+    vis = fast[2]
+    slopes = np.abs(fast[0][:, RX:BY + 1])
+    assert slopes[vis & inner].max() > 1e-3 and slopes[vis & ~inner].max() == 0
+
+
+def test_tapered_sharp_nodes_equal_the_numpy_twin(bumpy):
+    """``taper``: an LOD node's Gaussian loses its floor e^-c inside the cutoff, so that it
+    falls to 0 at its edge. A node blurred by the aperture takes the aperture's table
+    (tapered already, floor 0); one in focus, within SMALL_APERTURE of the kernel's sigma,
+    is drawn as a Gaussian less the floor: ``abuffer``'s Gaussian path, which no other twin
+    case draws with a floor (bench/mutants.py's mutant 16, that path without its floor,
+    survived them). Focused on the sheet's near part, a pixel stop of 3 px: 359 sharp
+    tapered nodes and 383 blurred ones (measured); the twin without the floor is 0.27 off
+    this frame, the fast frame 7e-7 (the bound is twin_frame's 1e-4)."""
+    from dofsplat.splat.project import FLOOR, RAD
+
+    s, tree = bumpy
+    cam = ds.Camera(eye=(0.3, -1.0, 2.2), target=(0, 0, 0), width=96, height=72, fov_y=45)
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.3)
+    st = ds.RenderSettings(lod_blur_fraction=1.0, lod_color_tolerance=math.inf,
+                           lod_min_node=2, lod_pixel_threshold=3.0, taper=True)
+    src, fast = _cut_against_the_twin(s, tree, cam, lens, st)
+    splats, vis, node = fast[0], fast[2], src.level > 0
+    sharp = vis & node & (splats[:, RAD] == 0)
+    blurred = vis & node & (splats[:, RAD] != 0)
+    assert sharp.sum() > 100 and blurred.sum() > 100, (sharp.sum(), blurred.sum())
+    np.testing.assert_allclose(splats[sharp, FLOOR], math.exp(-st.cutoff), rtol=1e-6)
+    assert np.all(splats[blurred, FLOOR] == 0) and np.all(splats[vis & ~node, FLOOR] == 0)
 
 
 def test_show_lod_colours_splats_by_level(plane_view):

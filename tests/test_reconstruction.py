@@ -105,9 +105,11 @@ def test_contact_seam_is_softened():
     merge/separate decision draws a hard line with a pale ghost under it; the soft
     reconstruction moves towards the reference there. Measured at 160 x 120, A = 0.75 (CoC
     about 20 px at the sphere), no LOD, against 64 lens samples, in the strip under the
-    sphere: soft 26.31 dB, paper 25.83 dB (whole frame 36.78 / 36.41; with the paper's
-    Gaussian kernel it was 25.20 / 24.82). The bound asks for 0.19 dB, 40 % of that gain:
-    a change that brings back the binary decision fails it."""
+    sphere: soft 27.57 dB, paper 25.73 dB on 2026-11-28 (whole frame 37.62 / 36.29; 26.31 /
+    25.83 when the soft reconstruction came, 25.20 / 24.82 with the paper's Gaussian
+    kernel). The bound asks for the gain measured less 0.5 dB (float rounding needs far
+    less), 1.33 dB: a change that brings back the binary decision, or loses most of the
+    gain, fails it."""
     import dataclasses
 
     from dofsplat.demo import demo_scene
@@ -121,7 +123,7 @@ def test_contact_seam_is_softened():
     for rec in ("soft", "paper"):
         img = ds.render(surfels, cam, lens, ds.RenderSettings(lod=False, reconstruction=rec)).image
         scores[rec] = psnr(img[85:110, :50], ref[85:110, :50])
-    assert scores["soft"] > scores["paper"] + 0.19
+    assert scores["soft"] > scores["paper"] + 1.33, scores
 
 
 def test_a_translucent_surface_on_an_opaque_one_uncovers_nothing():
@@ -144,27 +146,46 @@ def test_a_translucent_surface_on_an_opaque_one_uncovers_nothing():
     assert float(np.min(full - alone)) > -0.01
 
 
-def test_a_surface_hidden_from_the_whole_lens_does_not_merge():
+# PSNR of the blurred crossing planes against 32 lens samples, whole frame, measured on
+# 2026-11-28 (the same to 1e-12 dB with 1 and 2 numba threads and from a fresh kernel
+# cache), and the bound each case is held to: measured - 0.5 dB, room for another CPU's
+# float rounding many times over, not for a change of the method. The front's reach behind
+# it (abuffer.MERGE_REACH) at 2 instead of 6 costs the frame without LOD 1.18 dB (33.75);
+# with LOD that mutant scored 29.95 dB, higher than the code's: the LOD case does not see it
+HIDDEN_PSNR = {False: (34.94, 34.44), True: (29.62, 29.12)}  # lod: (measured, bound)
+
+
+@pytest.fixture(scope="module")
+def crossing_planes_blurred():
+    """The crossing planes at 128 x 128, A = 0.8 (CoC up to 6.6 px), and their reference of
+    32 lens samples: (surfels, camera, lens, reference image)."""
+    import dataclasses
+
+    from dofsplat.demo import intersecting_planes_scene
+    from dofsplat.reference import render_reference
+
+    surfels, cam, lens = intersecting_planes_scene(128, 128)
+    lens = dataclasses.replace(lens, aperture=0.8)
+    ref = render_reference(surfels, cam, lens, samples=32, progress=False).image
+    return surfels, cam, lens, ref
+
+
+@pytest.mark.parametrize("lod", [False, True])
+def test_a_surface_hidden_from_the_whole_lens_does_not_merge(lod, crossing_planes_blurred):
     """Two planes crossing at 12 degrees (the fidelity suite's ``intersect``), blurred: on
     each side of the crossing the rear plane lies within the front one's z-range over a
     circle of confusion, so the A-buffer used to merge it into the front (a grey haze over
     the whole lower half). A splat hidden at every point of its disk and from every point
     of the lens (its front seen with the parallax between them) is removed
     (``abuffer.splat_visibility``), if its blurred fragments' z-ranges reach the front's.
-    Measured at 128 x 128, A = 0.8 (CoC up to 6.6 px), against 32 lens samples: 27.0 dB
-    whole frame, against 16.6 dB before (against 64 samples: 26.9 and 16.6). The bound,
-    23 dB, keeps 60 % of the gain."""
-    import dataclasses
-
-    from dofsplat.demo import intersecting_planes_scene
+    Against the reference, whole frame: 16.6 dB before that removal, 27.0 dB when it came
+    (with LOD); now HIDDEN_PSNR's."""
     from dofsplat.metrics import psnr
-    from dofsplat.reference import render_reference
 
-    surfels, cam, lens = intersecting_planes_scene(128, 128)
-    lens = dataclasses.replace(lens, aperture=0.8)
-    ref = render_reference(surfels, cam, lens, samples=32, progress=False).image
-    img = ds.render(surfels, cam, lens, ds.RenderSettings()).image
-    assert psnr(img, ref) > 23.0
+    surfels, cam, lens, ref = crossing_planes_blurred
+    img = ds.render(surfels, cam, lens, ds.RenderSettings(lod=lod)).image
+    measured, bound = HIDDEN_PSNR[lod]
+    assert psnr(img, ref) > bound, f"measured {measured} dB when the bound was set"
 
 
 @pytest.mark.parametrize("lod", [False, True])
@@ -230,13 +251,13 @@ def test_a_front_that_ends_beyond_the_frame_reveals_what_it_hides(lod):
     in, shows through the front's blurred edge as it does in a wider frame. The fidelity
     suite's two crossing planes at 96 x 96, the largest CoC 7.5 px (its 40 px at 512): the
     textured plane's near edge lies a few pixels below the frame. The frame against the
-    middle of a frame 24 px wider each way at the same pixel scale: 52.9 dB (no LOD) and
-    53.5 dB (LOD) measured, where a front map of the image alone, taken to go on as it is
-    at the edge, gave 37.6 and 34.4 dB (the rear plane removed along the bottom: alpha
-    0.86 in the last row, 0.92 in the wider frame). What remains is where the crossing line
-    leaves the frame on the right: the wider frame's margin holds disks of splats whose
-    blur does not reach the narrow frame, so it never projects them. The bound, 47 dB,
-    sits between the two."""
+    middle of a frame 24 px wider each way at the same pixel scale: 52.91 dB (no LOD) and
+    53.48 dB (LOD) measured on 2026-11-28, where a front map of the image alone, taken to go
+    on as it is at the edge, gave 37.6 and 34.4 dB (the rear plane removed along the
+    bottom: alpha 0.86 in the last row, 0.92 in the wider frame). What remains is where the
+    crossing line leaves the frame on the right: the wider frame's margin holds disks of
+    splats whose blur does not reach the narrow frame, so it never projects them. The
+    bound is the measured value less 0.5 dB (float rounding needs far less)."""
     import dataclasses
     import math
 
@@ -252,7 +273,8 @@ def test_a_front_that_ends_beyond_the_frame_reveals_what_it_hides(lod):
     st = ds.RenderSettings(lod=lod)
     img = ds.render(surfels, cam, lens, st).image
     crop = ds.render(surfels, wide, lens, st).image[m:m + n, m:m + n]
-    assert psnr(img, crop) > 47.0
+    bound = {False: 52.41, True: 52.98}[lod]
+    assert psnr(img, crop) > bound
 
 
 def test_visibility_equals_its_slow_twin():

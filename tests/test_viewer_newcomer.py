@@ -1,9 +1,11 @@
 """The viewer as a newcomer meets it (issue 51, items 3-7): it orbits about the model, its
 page says what the first frame waits for, its moving frames are cheap, its panel shows
 the lens rendered and refuses what cannot be rendered, it listens on 127.0.0.1 and a port
-check prints nothing; and it serves Gaussian scenes. Most tests drive the viewer's own
-session with a stand-in for viser's page (``FakeClient``: viser's own CameraHandle, fake
-GUI elements); the browser tests skip where Debian's chromium is absent."""
+check prints nothing; and it serves Gaussian scenes. A closed tab ends its session, and a
+frame that cannot be rendered is said on the page (issue 52). Most tests drive the
+viewer's own session with a stand-in for viser's page (``FakeClient``: viser's own
+CameraHandle, fake GUI elements), or a server in process with websocket "tabs" that speak
+viser's protocol (``_Tab``); the browser tests skip where Debian's chromium is absent."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -518,3 +521,169 @@ def _matrix_of(wxyz):
     from dofsplat.viewer import _matrix
 
     return _matrix(wxyz)
+
+
+# -- a page's session: a tab closed, a frame that cannot be rendered (issue 52) ---------------
+
+
+def _until(condition, timeout, what):
+    t0 = time.monotonic()
+    while not condition():
+        assert time.monotonic() - t0 < timeout, f"no {what} in {timeout} s"
+        time.sleep(0.02)
+
+
+class _Tab:
+    """A browser tab without a browser: a websocket to the viewer speaking viser's own
+    protocol (its version as the subprotocol, then the camera message its page sends on
+    opening, which is when viser counts the client as connected); what the server sends
+    is read and dropped."""
+
+    def __init__(self, port: int):
+        import msgspec
+        from viser import _messages
+        from websockets.sync.client import connect
+
+        self._message, self._encode = _messages.ViewerCameraMessage, msgspec.msgpack.encode
+        self.ws = connect(f"ws://127.0.0.1:{port}", max_size=None,
+                          subprotocols=[f"viser-v{viser.__version__}"])
+        threading.Thread(target=self._drain, daemon=True).start()
+
+    def _drain(self):
+        try:
+            for _ in self.ws:
+                pass
+        except Exception:  # noqa: BLE001 - the tab closed
+            pass
+
+    def look(self, width: int, height: int) -> None:
+        """The page's camera: 4 units before the sphere, at a width x height canvas."""
+        message = self._message(wxyz=(0.0, 1.0, 0.0, 0.0), position=(0.5, -0.2, 4.3),
+                                fov=math.radians(40.0), near=0.01, far=1000.0,
+                                image_height=height, image_width=width,
+                                look_at=(0.5, -0.2, 0.3), up_direction=(0.0, 1.0, 0.0))
+        self.ws.send(self._encode(message.as_serializable_dict()))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def test_a_closed_tab_ends_its_session(monkeypatch):
+    """Two tabs on one server, each with its session (controls, render thread) and a
+    frame. The first tab closes: its session leaves the server's table, its render thread
+    ends within 5 s, nothing holds the session any more (collected), and a late camera
+    update for it renders nothing; the other tab is still served (a new camera, a new
+    frame, at its new size)."""
+    import gc
+    import weakref
+
+    from dofsplat import viewer
+    from dofsplat.viewer import view
+
+    renders = []  # the render thread of each frame rendered
+    real_render_frame = viewer.render_frame
+
+    def counted(*args, **kwargs):
+        renders.append(threading.current_thread())
+        return real_render_frame(*args, **kwargs)
+
+    monkeypatch.setattr(viewer, "render_frame", counted)
+    server = view(_sphere(), port=_free_port(), open_browser=False, block=False,
+                  log=lambda m: None)
+    sessions = server.dofsplat_sessions
+    try:
+        closing, staying = _Tab(server.get_port()), _Tab(server.get_port())
+        closing.look(64, 48)
+        staying.look(64, 48)
+        _until(lambda: len(sessions) == 2 and all(s.depth is not None
+                                                  for s in list(sessions.values())),
+               60, "first frame on both tabs")
+        before = dict(sessions)
+        assert all(s.thread in renders for s in before.values())
+
+        closing.close()
+        _until(lambda: len(sessions) == 1, 5, "session removed")
+        (kept_id, kept), = sessions.items()
+        (closed,) = (s for k, s in before.items() if k != kept_id)
+        del before
+        closed.thread.join(timeout=5)
+        assert not closed.thread.is_alive() and not closed.running
+        rendered_for_closed = renders.count(closed.thread)
+        closed.changed()  # a camera update still in flight when the tab closed
+        kept_before = renders.count(kept.thread)
+        staying.look(80, 60)
+        _until(lambda: kept.depth is not None and kept.depth.shape == (60, 80), 30,
+               "new frame on the open tab")
+        time.sleep(0.5)
+        assert renders.count(closed.thread) == rendered_for_closed
+        assert renders.count(kept.thread) > kept_before
+        assert list(sessions) == [kept_id]
+
+        gone = weakref.ref(closed)
+        del closed
+        gc.collect()
+        assert gone() is None, gc.get_referrers(gone())
+        staying.close()
+        _until(lambda: not sessions, 5, "the last session removed")
+    finally:
+        server.stop()
+
+
+def test_a_frame_that_cannot_be_rendered_is_said_on_the_page(monkeypatch):
+    """A render that raises a user's error (here a page set to the CUDA device on a
+    machine without one: render() refuses) shows "Cannot render: <why>" in the page's
+    status line and sends no frame; the session's render thread goes on, says nothing of
+    a failure in the terminal (the error is the user's, not a bug), and draws the next
+    frame once the cause is gone."""
+    import dofsplat.backends
+
+    problem = "no CUDA driver (a stand-in)"
+    monkeypatch.setattr(dofsplat.backends, "cuda_problem", lambda: problem)
+    said = []
+    session, client, _ = make_session(settings=ds.RenderSettings(device="cuda"))
+    session.log = said.append
+    client.camera._state.image_width, client.camera._state.image_height = 64, 48
+    session.thread.start()
+    try:
+        _until(lambda: session.status.content.startswith("**Cannot render:**"), 60,
+               "'Cannot render' in the status line")
+        assert session.status.content == (f"**Cannot render:** device cuda cannot run here: "
+                                          f"{problem} (use device cpu or auto)")
+        time.sleep(0.3)
+        assert session.thread.is_alive() and client.frames == []
+        assert not any("render failed" in line for line in said), said
+
+        session.settings = replace(session.settings, device="cpu")
+        session.changed()
+        # a moving frame (a quarter of the size), then the still one
+        _until(lambda: client.frames and client.frames[-1].shape == (48, 64, 3), 60,
+               "full frame after the cause is gone")
+        assert session.status.content.startswith("64x48, ")
+    finally:
+        session.stop()
+        session.thread.join(timeout=5)
+    assert not session.thread.is_alive()
+
+
+def test_a_render_that_fails_by_a_bug_is_said_in_the_terminal_too(monkeypatch):
+    """Not a user's error: the page's status line says "Cannot render", the terminal says
+    which exception (to report), and the render thread goes on."""
+    from dofsplat import viewer
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(viewer, "render_frame", broken)
+    said = []
+    session, client, _ = make_session()
+    session.log = said.append
+    session.thread.start()
+    try:
+        _until(lambda: said, 30, "line in the terminal")
+        assert session.status.content == "**Cannot render:** a bug"
+        assert said == ["render failed: RuntimeError: a bug"]
+        assert session.thread.is_alive() and client.frames == []
+    finally:
+        session.stop()
+        session.thread.join(timeout=5)
+    assert not session.thread.is_alive()
