@@ -13,7 +13,7 @@ from dofsplat.backends.cpu_gauss import blur_variance, project
 from dofsplat.gauss import slow
 from dofsplat.gauss.project import (F_CA, F_CB, F_CC, F_DEPTH, F_OPACITY, F_X, F_Y,
                                     intrinsics, view_matrix)
-from dofsplat.gauss.sh import sh_basis, sh_basis_numpy
+from dofsplat.gauss.sh import sh_basis_numpy, sh_color
 from dofsplat.gaussians import Gaussians
 from dofsplat.io import linear_to_srgb
 
@@ -42,14 +42,20 @@ def unit_directions(n, seed=0):
 
 def test_sh_basis_matches_the_general_formula():
     """The kernel's closed forms against the associated-Legendre formula (slow.real_sh):
+    sh_color with one coefficient 1 (channel 0), the rest 0, is 0.5 + that basis function;
     agreement to 1e-12 (float64 rounding of terms of size ~3)."""
     dirs = unit_directions(200)
-    out = np.empty(16)
+    one_hot = np.zeros((16, 16, 3))
+    one_hot[np.arange(16), np.arange(16), 0] = 1.0
     for d in dirs:
-        sh_basis(d[0], d[1], d[2], out)
+        out = [sh_color(d[0], d[1], d[2], one_hot, k, 0) - 0.5 for k in range(16)]
         np.testing.assert_allclose(out, slow.real_sh(d, 16), atol=1e-12)
     np.testing.assert_allclose(sh_basis_numpy(dirs, 16),
                                np.array([slow.real_sh(d, 16) for d in dirs]), atol=1e-12)
+    for k in (1, 4, 9):  # lower degrees read only their own coefficients
+        d = dirs[0]
+        assert sh_color(d[0], d[1], d[2], one_hot[:, :k], k - 1, 0) - 0.5 == \
+            pytest.approx(slow.real_sh(d, k)[k - 1], abs=1e-12)
 
 
 def test_sh_basis_is_orthonormal_on_the_sphere():

@@ -73,6 +73,17 @@ def test_srgb_known_values():
     assert linear_to_srgb(0.001) == pytest.approx(0.01292, rel=1e-12)
 
 
+def test_the_kernels_srgb_decode_is_the_arrays():
+    """colors.srgb_value_to_linear (one value, for the Gaussian kernels and their CUDA twins)
+    against srgb_to_linear on either side of the knee: the same formula in float64, so to
+    1e-15."""
+    from dofsplat.colors import srgb_value_to_linear
+
+    x = np.concatenate([np.linspace(0.0, 1.0, 1001), [0.04045, np.nextafter(0.04045, 1.0)]])
+    got = np.array([srgb_value_to_linear(v) for v in x])
+    np.testing.assert_allclose(got, srgb_to_linear(x), rtol=0, atol=1e-15)
+
+
 def test_srgb_round_trip():
     x = np.linspace(0.0, 1.0, 10001)
     np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(x)), x, rtol=0, atol=1e-6)

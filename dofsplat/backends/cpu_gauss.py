@@ -18,9 +18,10 @@ import numpy as np
 
 from ..jit import numba
 from ..camera import Camera
-from ..colors import linear_to_srgb, srgb_to_linear
+from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
-from ..gauss.composite import TILE, bin_tiles, composite_tiles, depth_order
+from ..gauss.composite import (TILE, bin_tiles, composite_tiles, depth_order, finish_image,
+                               finish_shares, keep_best_share)
 from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
                              F_OPACITY, N_FIELDS, intrinsics,
                              project_gaussians, view_matrix)
@@ -30,7 +31,6 @@ from ..splat.subaperture import aperture_second_moment
 
 NO_SHARE = np.zeros(0, np.float32)  # project_gaussians: no lens visibility
 NO_SEEN = np.zeros((0, 0), np.float32)  # composite_tiles: no visible alpha kept
-SHARE_SEEN = 0.05  # lens_visibility: a Gaussian seen this much (a share of its footprint) counts as seen
 BLURS = {"ours": BLUR_OURS, "viewers": BLUR_VIEWERS}
 
 
@@ -62,8 +62,8 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
             np.minimum(depth, d, out=depth)
             for key in stats:
                 stats[key] += s[key]
-        color, trans = color / len(parts.cameras), trans / len(parts.cameras)
-    image = to_linear_rgba(color, trans, settings.background)
+    image = to_linear_rgba(color, trans, settings.background,
+                           1.0 if parts is None else 1.0 / len(parts.cameras))
     stats.update(points_in=n_in, width=camera.width, height=camera.height,
                  total_ms=(time.perf_counter() - t0) * 1000.0)
     alpha = image[..., 3].copy()
@@ -137,15 +137,14 @@ def blur_variance(lens) -> float:
                                         getattr(lens, "blades", 0))
 
 
-def to_linear_rgba(color, trans, background) -> np.ndarray:
+def to_linear_rgba(color, trans, background, scale: float = 1.0) -> np.ndarray:
     """(H, W, 4) float32: the composite over the background in the trainer's colour space
     (the background, given in linear RGB, encoded to it), decoded to linear RGB, and alpha
-    1 - T: so that the image written (encoded again) holds the trainer's values."""
-    bg = linear_to_srgb(np.asarray(background, np.float64))
-    rgb = np.asarray(color, np.float64) + np.asarray(trans, np.float64)[..., None] * bg
+    1 - T (``gauss.composite.finish_pixel``): so that the image written (encoded again)
+    holds the trainer's values. color and trans are scaled by ``scale`` first."""
     out = np.empty(trans.shape + (4,), np.float32)
-    out[..., :3] = srgb_to_linear(np.clip(rgb, 0.0, 1.0))
-    out[..., 3] = 1.0 - trans
+    finish_image(color, trans, float(scale), linear_to_srgb(np.asarray(background, np.float64)),
+                 out)
     return out
 
 
@@ -162,30 +161,31 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
     a twentieth of or more is 1 (docs/maths.md, "Gaussian scenes": a surface's overlapping
     Gaussians each see a part of their footprint, and scaling them by that part left the
     surface too thin; only the hidden ones are to go)."""
+    best = np.zeros(len(scene), np.float32)
+    for cam in visibility_cameras(camera, lens, views, scale):
+        rows, boxes, visible = project(scene, cam, None, settings)
+        n_tx, n_ty = -(-cam.width // TILE), -(-cam.height // TILE)
+        offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
+        h, w = cam.height, cam.width
+        seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
+        composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
+                        np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
+        keep_best_share(rows, visible, seen.sum(axis=0), best)
+    finish_shares(best)
+    return best
+
+
+def visibility_cameras(camera: Camera, lens, views: int = 6, scale: int = 2) -> list[Camera]:
+    """The pinhole views of ``lens_visibility``: from the lens centre and ``views`` points on
+    its rim, at 1/scale the resolution, focused where the lens is."""
     from ..camera import effective_diameter, lens_camera
 
     small = replace(camera, width=max(1, camera.width // scale),
                     height=max(1, camera.height // scale))
     radius = 0.5 * effective_diameter(camera, lens)
-    offsets = [(0.0, 0.0)] + [(radius * math.cos(2 * math.pi * k / views),
-                               radius * math.sin(2 * math.pi * k / views)) for k in range(views)]
-    best = np.zeros(len(scene), np.float32)
-    for o in offsets:
-        cam = lens_camera(small, o, float(lens.focus_distance)) if o != (0.0, 0.0) else small
-        rows, boxes, visible = project(scene, cam, None, settings)
-        n_tx, n_ty = -(-cam.width // TILE), -(-cam.height // TILE)
-        offsets_, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
-        h, w = cam.height, cam.width
-        seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
-        composite_tiles(rows, boxes, offsets_, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
-                        np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
-        # a footprint's integral: o 2 pi sqrt(det cov2d), det cov2d = 1 / det conic
-        idx = np.flatnonzero(visible)
-        r = rows[idx].astype(np.float64)
-        energy = r[:, F_OPACITY] * 2.0 * np.pi / np.sqrt(r[:, F_CA] * r[:, F_CC] - r[:, F_CB] ** 2)
-        share = np.minimum(seen[:, idx].sum(axis=0) / energy, 1.0)
-        best[idx] = np.maximum(best[idx], share)
-    return np.minimum(best / SHARE_SEEN, 1.0).astype(np.float32)
+    offsets = [(radius * math.cos(2 * math.pi * k / views),
+                radius * math.sin(2 * math.pi * k / views)) for k in range(views)]
+    return [small] + [lens_camera(small, o, float(lens.focus_distance)) for o in offsets]
 
 
 # -- helpers -----------------------------------------------------------------------------

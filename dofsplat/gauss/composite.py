@@ -21,6 +21,7 @@ import math
 
 import numpy as np
 
+from ..colors import srgb_value_to_linear
 from ..jit import numba
 from .project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_G, F_OPACITY, F_R, F_X, F_Y,
                       MAX_ALPHA)
@@ -28,6 +29,7 @@ from .project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_G, F_OPACITY, F_R
 TILE = 16
 MIN_TRANSMITTANCE = 1e-4  # a pixel stops before its transmittance falls to this
 MEDIAN_TRANSMITTANCE = 0.5  # the depth output: where T falls to this
+SHARE_SEEN = 0.05  # lens visibility: a Gaussian seen this much (a share of its footprint) counts as seen
 
 
 def depth_order(rows: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -59,6 +61,55 @@ def bin_tiles(order, boxes, n_tx, n_ty):
     return counts, ids
 
 
+# a pixel's blend state (``blend``): transmittance, colour, median depth
+S_T, S_R, S_G, S_B, S_DEPTH = range(5)
+N_STATE = 5
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def start_pixel(state, p):
+    """Pixel p's state before any Gaussian: T = 1, no colour, no depth."""
+    state[p, S_T] = 1.0
+    state[p, S_R] = 0.0
+    state[p, S_G] = 0.0
+    state[p, S_B] = 0.0
+    state[p, S_DEPTH] = math.inf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py):
+    """The alpha of a Gaussian (mean mx, my; conic ca, cb, cc; opacity; cut) at pixel
+    (px, py), or 0.0 where it is skipped (s < 0, or alpha below its cut)."""
+    dx = mx - (px + 0.5)
+    dy = my - (py + 0.5)
+    s = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    if s < 0.0:
+        return 0.0
+    alpha = min(MAX_ALPHA, opacity * math.exp(-s))
+    if alpha < cut:
+        return 0.0
+    return alpha
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def blend(state, p, alpha, rows, g):
+    """Row g's Gaussian, at this alpha, over pixel p's state (the module docstring's
+    step): the weight alpha T added, or -1.0 where the pixel is done (T would fall to
+    MIN_TRANSMITTANCE: nothing is added, and nothing more will be)."""
+    t_before = state[p, S_T]
+    next_trans = t_before * (1.0 - alpha)
+    if next_trans <= MIN_TRANSMITTANCE:
+        return -1.0
+    w = alpha * t_before
+    state[p, S_R] += w * rows[g, F_R]
+    state[p, S_G] += w * rows[g, F_G]
+    state[p, S_B] += w * rows[g, F_B]
+    if next_trans <= MEDIAN_TRANSMITTANCE < t_before:
+        state[p, S_DEPTH] = rows[g, F_DEPTH]
+    state[p, S_T] = next_trans
+    return w
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, transmittance,
                     depth, seen):
@@ -70,7 +121,8 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
 
     Gaussian by Gaussian, over the pixels of its box within the tile only (a tile's list
     holds many Gaussians that reach a few of its pixels); each pixel's blend is the one of
-    the module docstring, in the same order, so the result is the pixel-by-pixel walk's."""
+    the module docstring, in the same order, so the result is the pixel-by-pixel walk's
+    (the CUDA backend's, a thread per pixel, with the same ``gaussian_alpha`` and ``blend``)."""
     n_tiles = offsets.shape[0] - 1
     track = seen.shape[0] > 0
     for t in numba.prange(n_tiles):
@@ -81,9 +133,9 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
         ty1 = min(ty0 + TILE, height)
         tw = tx1 - tx0
         n_px = tw * (ty1 - ty0)
-        trans = np.ones(n_px, np.float64)
-        rgb = np.zeros((n_px, 3), np.float64)
-        d = np.full(n_px, math.inf, np.float32)
+        state = np.empty((n_px, N_STATE), np.float64)
+        for p in range(n_px):
+            start_pixel(state, p)
         done = np.zeros(n_px, np.bool_)
         n_done = 0
         for k in range(offsets[t], offsets[t + 1]):
@@ -94,38 +146,78 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
             ca, cb, cc = rows[g, F_CA], rows[g, F_CB], rows[g, F_CC]
             opacity, cut = rows[g, F_OPACITY], rows[g, F_CUT]
             for py in range(max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)):
-                dy = my - (py + 0.5)
                 for px in range(max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)):
                     p = (py - ty0) * tw + (px - tx0)
                     if done[p]:
                         continue
-                    dx = mx - (px + 0.5)
-                    s = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if s < 0.0:
+                    alpha = gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py)
+                    if alpha == 0.0:
                         continue
-                    alpha = min(MAX_ALPHA, opacity * math.exp(-s))
-                    if alpha < cut:
-                        continue
-                    t_before = trans[p]
-                    next_trans = t_before * (1.0 - alpha)
-                    if next_trans <= MIN_TRANSMITTANCE:
+                    w = blend(state, p, alpha, rows, g)
+                    if w < 0.0:
                         done[p] = True
                         n_done += 1
-                        continue
-                    w = alpha * t_before
-                    if track:
+                    elif track:
                         seen[tid, g] += w
-                    rgb[p, 0] += w * rows[g, F_R]
-                    rgb[p, 1] += w * rows[g, F_G]
-                    rgb[p, 2] += w * rows[g, F_B]
-                    if next_trans <= MEDIAN_TRANSMITTANCE < t_before:
-                        d[p] = rows[g, F_DEPTH]
-                    trans[p] = next_trans
         for py in range(ty0, ty1):
             for px in range(tx0, tx1):
                 p = (py - ty0) * tw + (px - tx0)
-                color[py, px, 0] = rgb[p, 0]
-                color[py, px, 1] = rgb[p, 1]
-                color[py, px, 2] = rgb[p, 2]
-                transmittance[py, px] = trans[p]
-                depth[py, px] = d[p]
+                color[py, px, 0] = state[p, S_R]
+                color[py, px, 1] = state[p, S_G]
+                color[py, px, 2] = state[p, S_B]
+                transmittance[py, px] = state[p, S_T]
+                depth[py, px] = state[p, S_DEPTH]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def seen_share(rows, i, seen):
+    """The share of row i's alpha energy that a view saw, at most 1: seen (its alpha T
+    summed over the pixels) over its footprint's integral, o 2 pi sqrt(det cov2d)
+    (det cov2d = 1 / det conic)."""
+    ca, cb, cc = float(rows[i, F_CA]), float(rows[i, F_CB]), float(rows[i, F_CC])
+    energy = float(rows[i, F_OPACITY]) * 2.0 * math.pi / math.sqrt(ca * cc - cb * cb)
+    return min(seen / energy, 1.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def lens_share(best):
+    """A Gaussian's lens visibility from the largest share any view saw: over SHARE_SEEN,
+    at most 1 (``backends.cpu_gauss.lens_visibility``)."""
+    return min(best / SHARE_SEEN, 1.0)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def keep_best_share(rows, visible, seen, best):
+    """best[i] = max(best[i], seen_share) for the visible rows; seen: (N,) the view's alpha
+    T summed per Gaussian."""
+    for i in numba.prange(visible.shape[0]):
+        if visible[i]:
+            best[i] = max(best[i], seen_share(rows, i, float(seen[i])))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def finish_shares(best):
+    """best[i] = lens_share(best[i]) for every Gaussian, in place."""
+    for i in numba.prange(best.shape[0]):
+        best[i] = lens_share(best[i])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def finish_pixel(color, trans, y, x, scale, bg, out):
+    """out[y, x] (RGBA): the composite over the background, in linear RGB. color (H, W, 3)
+    and trans (H, W) are scaled by ``scale`` (1/K for the sums of K lens parts); bg (3,) is
+    the background in the trainer's colour space. The composite C + T bg is clipped to
+    [0, 1] there and decoded; alpha is 1 - T."""
+    t = trans[y, x] * scale
+    for c in range(3):
+        v = color[y, x, c] * scale + t * bg[c]
+        out[y, x, c] = srgb_value_to_linear(min(max(v, 0.0), 1.0))
+    out[y, x, 3] = 1.0 - t
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def finish_image(color, trans, scale, bg, out):
+    """``finish_pixel`` over the image, a row per task."""
+    for y in numba.prange(trans.shape[0]):
+        for x in range(trans.shape[1]):
+            finish_pixel(color, trans, y, x, scale, bg, out)

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from ..jit import numba
-from .sh import sh_basis
+from .sh import sh_color
 
 # row fields
 F_X, F_Y, F_DEPTH, F_CA, F_CB, F_CC, F_OPACITY, F_CUT, F_R, F_G, F_B, F_COC = range(12)
@@ -77,116 +77,120 @@ def project_gaussians(positions, scales, rotations, opacity, sh, view, campos, f
     C_r = 1 (1/4 for a disc); share: (N,) the visible share of each Gaussian over the lens
     (``backends.cpu_gauss.lens_visibility``), or (0,) for none.
     """
-    n = positions.shape[0]
-    k_sh = sh.shape[1]
+    for i in numba.prange(positions.shape[0]):
+        project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy,
+                         cx, cy, width, height, near, far, eps2d, antialiased, blur, coc_k,
+                         inv_focus, blur_variance, share, rows, boxes, visible)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy, cx,
+                     cy, width, height, near, far, eps2d, antialiased, blur, coc_k, inv_focus,
+                     blur_variance, share, rows, boxes, visible):
+    """Gaussian i's row, box and visibility (``project_gaussians``'s, which see): the
+    per-Gaussian maths that the CUDA backend compiles as a device function too."""
     tan_x = 0.5 * width / fx
     tan_y = 0.5 * height / fy
     lim_x_pos = (width - cx) / fx + CLAMP_MARGIN * tan_x
     lim_x_neg = cx / fx + CLAMP_MARGIN * tan_x
     lim_y_pos = (height - cy) / fy + CLAMP_MARGIN * tan_y
     lim_y_neg = cy / fy + CLAMP_MARGIN * tan_y
-    for i in numba.prange(n):
-        visible[i] = False
-        px, py, pz = positions[i, 0], positions[i, 1], positions[i, 2]
-        x = view[0, 0] * px + view[0, 1] * py + view[0, 2] * pz + view[0, 3]
-        y = view[1, 0] * px + view[1, 1] * py + view[1, 2] * pz + view[1, 3]
-        z = view[2, 0] * px + view[2, 1] * py + view[2, 2] * pz + view[2, 3]
-        if not (z > near and z < far):
-            continue
-        # Sigma = M M^T, M = R S (R from the unit quaternion)
-        qw, qx, qy, qz = rotations[i, 0], rotations[i, 1], rotations[i, 2], rotations[i, 3]
-        r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-        r01 = 2.0 * (qx * qy - qw * qz)
-        r02 = 2.0 * (qx * qz + qw * qy)
-        r10 = 2.0 * (qx * qy + qw * qz)
-        r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-        r12 = 2.0 * (qy * qz - qw * qx)
-        r20 = 2.0 * (qx * qz - qw * qy)
-        r21 = 2.0 * (qy * qz + qw * qx)
-        r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
-        sx, sy, sz = scales[i, 0], scales[i, 1], scales[i, 2]
-        # T = J W M: the 2 x 3 map from the Gaussian's own axes to pixels; cov2d = T T^T
-        tx = z * min(lim_x_pos, max(-lim_x_neg, x / z))
-        ty = z * min(lim_y_pos, max(-lim_y_neg, y / z))
-        j00, j02 = fx / z, -fx * tx / (z * z)
-        j11, j12 = fy / z, -fy * ty / (z * z)
-        # rows of J W (2 x 3)
-        a0 = j00 * view[0, 0] + j02 * view[2, 0]
-        a1 = j00 * view[0, 1] + j02 * view[2, 1]
-        a2 = j00 * view[0, 2] + j02 * view[2, 2]
-        b0 = j11 * view[1, 0] + j12 * view[2, 0]
-        b1 = j11 * view[1, 1] + j12 * view[2, 1]
-        b2 = j11 * view[1, 2] + j12 * view[2, 2]
-        # (J W) R S, column by column
-        u0 = (a0 * r00 + a1 * r10 + a2 * r20) * sx
-        u1 = (a0 * r01 + a1 * r11 + a2 * r21) * sy
-        u2 = (a0 * r02 + a1 * r12 + a2 * r22) * sz
-        v0 = (b0 * r00 + b1 * r10 + b2 * r20) * sx
-        v1 = (b0 * r01 + b1 * r11 + b2 * r21) * sy
-        v2 = (b0 * r02 + b1 * r12 + b2 * r22) * sz
-        ca = u0 * u0 + u1 * u1 + u2 * u2
-        cb = u0 * v0 + u1 * v1 + u2 * v2
-        cc = v0 * v0 + v1 * v1 + v2 * v2
-        det0 = ca * cc - cb * cb
-        ca += eps2d
-        cc += eps2d
-        det = ca * cc - cb * cb
-        if not det > 0.0:
-            continue
-        o = opacity[i]
-        if antialiased:
-            o *= math.sqrt(max(det0 / det, 0.0))
-        cut = MIN_ALPHA
-        coc = coc_k * abs(1.0 / z - inv_focus)
-        if blur != BLUR_NONE and coc > 0.0:
-            var = blur_variance * coc * coc if blur == BLUR_OURS else coc * coc
-            ca += var
-            cc += var
-            det_blur = ca * cc - cb * cb
-            spread = math.sqrt(det / det_blur)
-            o *= spread
-            if blur == BLUR_OURS:
-                cut = MIN_ALPHA * spread
-                if share.shape[0] > 0:
-                    # as the blur outgrows the footprint, only the share of the Gaussian that
-                    # the lens sees is spread (what hides it in every view stays hidden)
-                    o *= share[i] ** (1.0 - spread)
-            det = det_blur
-        if o < cut:
-            continue
-        # the box: alpha = min(MAX_ALPHA, o e^-s) >= cut needs s <= ln(o / cut), an ellipse
-        # whose half-extents are sqrt(2 ln(o / cut) cov_xx) and sqrt(2 ln(o / cut) cov_yy)
-        reach = 2.0 * math.log(o / cut)
-        ex = math.sqrt(reach * ca) + BOX_SLACK
-        ey = math.sqrt(reach * cc) + BOX_SLACK
-        mx = fx * x / z + cx
-        my = fy * y / z + cy
-        x0 = max(math.ceil(mx - ex - 0.5), 0.0)
-        x1 = min(math.floor(mx + ex - 0.5) + 1.0, float(width))
-        y0 = max(math.ceil(my - ey - 0.5), 0.0)
-        y1 = min(math.floor(my + ey - 0.5) + 1.0, float(height))
-        if x0 >= x1 or y0 >= y1:
-            continue
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = int(x0), int(x1), int(y0), int(y1)
-        # colour for the direction from the centre of projection to the mean
-        dx = px - campos[0]
-        dy = py - campos[1]
-        dz = pz - campos[2]
-        inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
-        basis = np.empty(k_sh)
-        sh_basis(dx * inv, dy * inv, dz * inv, basis)
-        for ch in range(3):
-            c = 0.5
-            for k in range(k_sh):
-                c += basis[k] * sh[i, k, ch]
-            rows[i, F_R + ch] = max(c, 0.0)
-        rows[i, F_X] = mx
-        rows[i, F_Y] = my
-        rows[i, F_DEPTH] = z
-        rows[i, F_CA] = cc / det
-        rows[i, F_CB] = -cb / det
-        rows[i, F_CC] = ca / det
-        rows[i, F_OPACITY] = o
-        rows[i, F_CUT] = cut
-        rows[i, F_COC] = coc
-        visible[i] = True
+    visible[i] = False
+    px, py, pz = positions[i, 0], positions[i, 1], positions[i, 2]
+    x = view[0, 0] * px + view[0, 1] * py + view[0, 2] * pz + view[0, 3]
+    y = view[1, 0] * px + view[1, 1] * py + view[1, 2] * pz + view[1, 3]
+    z = view[2, 0] * px + view[2, 1] * py + view[2, 2] * pz + view[2, 3]
+    if not (z > near and z < far):
+        return
+    # Sigma = M M^T, M = R S (R from the unit quaternion)
+    qw, qx, qy, qz = rotations[i, 0], rotations[i, 1], rotations[i, 2], rotations[i, 3]
+    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
+    r01 = 2.0 * (qx * qy - qw * qz)
+    r02 = 2.0 * (qx * qz + qw * qy)
+    r10 = 2.0 * (qx * qy + qw * qz)
+    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
+    r12 = 2.0 * (qy * qz - qw * qx)
+    r20 = 2.0 * (qx * qz - qw * qy)
+    r21 = 2.0 * (qy * qz + qw * qx)
+    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    sx, sy, sz = scales[i, 0], scales[i, 1], scales[i, 2]
+    # T = J W M: the 2 x 3 map from the Gaussian's own axes to pixels; cov2d = T T^T
+    tx = z * min(lim_x_pos, max(-lim_x_neg, x / z))
+    ty = z * min(lim_y_pos, max(-lim_y_neg, y / z))
+    j00, j02 = fx / z, -fx * tx / (z * z)
+    j11, j12 = fy / z, -fy * ty / (z * z)
+    # rows of J W (2 x 3)
+    a0 = j00 * view[0, 0] + j02 * view[2, 0]
+    a1 = j00 * view[0, 1] + j02 * view[2, 1]
+    a2 = j00 * view[0, 2] + j02 * view[2, 2]
+    b0 = j11 * view[1, 0] + j12 * view[2, 0]
+    b1 = j11 * view[1, 1] + j12 * view[2, 1]
+    b2 = j11 * view[1, 2] + j12 * view[2, 2]
+    # (J W) R S, column by column
+    u0 = (a0 * r00 + a1 * r10 + a2 * r20) * sx
+    u1 = (a0 * r01 + a1 * r11 + a2 * r21) * sy
+    u2 = (a0 * r02 + a1 * r12 + a2 * r22) * sz
+    v0 = (b0 * r00 + b1 * r10 + b2 * r20) * sx
+    v1 = (b0 * r01 + b1 * r11 + b2 * r21) * sy
+    v2 = (b0 * r02 + b1 * r12 + b2 * r22) * sz
+    ca = u0 * u0 + u1 * u1 + u2 * u2
+    cb = u0 * v0 + u1 * v1 + u2 * v2
+    cc = v0 * v0 + v1 * v1 + v2 * v2
+    det0 = ca * cc - cb * cb
+    ca += eps2d
+    cc += eps2d
+    det = ca * cc - cb * cb
+    if not det > 0.0:
+        return
+    o = opacity[i]
+    if antialiased:
+        o *= math.sqrt(max(det0 / det, 0.0))
+    cut = MIN_ALPHA
+    coc = coc_k * abs(1.0 / z - inv_focus)
+    if blur != BLUR_NONE and coc > 0.0:
+        var = blur_variance * coc * coc if blur == BLUR_OURS else coc * coc
+        ca += var
+        cc += var
+        det_blur = ca * cc - cb * cb
+        spread = math.sqrt(det / det_blur)
+        o *= spread
+        if blur == BLUR_OURS:
+            cut = MIN_ALPHA * spread
+            if share.shape[0] > 0:
+                # as the blur outgrows the footprint, only the share of the Gaussian that
+                # the lens sees is spread (what hides it in every view stays hidden)
+                o *= share[i] ** (1.0 - spread)
+        det = det_blur
+    if o < cut:
+        return
+    # the box: alpha = min(MAX_ALPHA, o e^-s) >= cut needs s <= ln(o / cut), an ellipse
+    # whose half-extents are sqrt(2 ln(o / cut) cov_xx) and sqrt(2 ln(o / cut) cov_yy)
+    reach = 2.0 * math.log(o / cut)
+    ex = math.sqrt(reach * ca) + BOX_SLACK
+    ey = math.sqrt(reach * cc) + BOX_SLACK
+    mx = fx * x / z + cx
+    my = fy * y / z + cy
+    x0 = max(math.ceil(mx - ex - 0.5), 0.0)
+    x1 = min(math.floor(mx + ex - 0.5) + 1.0, float(width))
+    y0 = max(math.ceil(my - ey - 0.5), 0.0)
+    y1 = min(math.floor(my + ey - 0.5) + 1.0, float(height))
+    if x0 >= x1 or y0 >= y1:
+        return
+    boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = int(x0), int(x1), int(y0), int(y1)
+    # colour for the direction from the centre of projection to the mean
+    dx = px - campos[0]
+    dy = py - campos[1]
+    dz = pz - campos[2]
+    inv = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+    for ch in range(3):
+        rows[i, F_R + ch] = max(sh_color(dx * inv, dy * inv, dz * inv, sh, i, ch), 0.0)
+    rows[i, F_X] = mx
+    rows[i, F_Y] = my
+    rows[i, F_DEPTH] = z
+    rows[i, F_CA] = cc / det
+    rows[i, F_CB] = -cb / det
+    rows[i, F_CC] = ca / det
+    rows[i, F_OPACITY] = o
+    rows[i, F_CUT] = cut
+    rows[i, F_COC] = coc
+    visible[i] = True

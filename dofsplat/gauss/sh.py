@@ -22,34 +22,34 @@ C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633259
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def sh_basis(x, y, z, out):
-    """The K values Y_0..Y_{K-1}(x, y, z) into out (K = len(out) in 1, 4, 9, 16)."""
-    k = out.shape[0]
-    out[0] = C0
+def sh_color(x, y, z, sh, i, ch):
+    """0.5 + sum_k Y_k(x, y, z) sh[i, k, ch]: Gaussian i's colour channel ch before the
+    clamp at 0, for the unit direction (x, y, z), over its K = sh.shape[1] (1, 4, 9 or 16)
+    coefficients. The basis is summed as it is evaluated (no array: the CUDA backend
+    compiles this as a device function too)."""
+    k = sh.shape[1]
+    c = 0.5 + C0 * sh[i, 0, ch]
     if k > 1:
-        out[1] = -C1 * y
-        out[2] = C1 * z
-        out[3] = -C1 * x
+        c += C1 * (-y * sh[i, 1, ch] + z * sh[i, 2, ch] - x * sh[i, 3, ch])
     if k > 4:
         xx, yy, zz = x * x, y * y, z * z
-        out[4] = C2[0] * x * y
-        out[5] = C2[1] * y * z
-        out[6] = C2[2] * (2.0 * zz - xx - yy)
-        out[7] = C2[3] * x * z
-        out[8] = C2[4] * (xx - yy)
+        c += (C2[0] * x * y * sh[i, 4, ch] + C2[1] * y * z * sh[i, 5, ch]
+              + C2[2] * (2.0 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * x * z * sh[i, 7, ch]
+              + C2[4] * (xx - yy) * sh[i, 8, ch])
         if k > 9:
-            out[9] = C3[0] * y * (3.0 * xx - yy)
-            out[10] = C3[1] * x * y * z
-            out[11] = C3[2] * y * (4.0 * zz - xx - yy)
-            out[12] = C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
-            out[13] = C3[4] * x * (4.0 * zz - xx - yy)
-            out[14] = C3[5] * z * (xx - yy)
-            out[15] = C3[6] * x * (xx - 3.0 * yy)
+            c += (C3[0] * y * (3.0 * xx - yy) * sh[i, 9, ch]
+                  + C3[1] * x * y * z * sh[i, 10, ch]
+                  + C3[2] * y * (4.0 * zz - xx - yy) * sh[i, 11, ch]
+                  + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, ch]
+                  + C3[4] * x * (4.0 * zz - xx - yy) * sh[i, 13, ch]
+                  + C3[5] * z * (xx - yy) * sh[i, 14, ch]
+                  + C3[6] * x * (xx - 3.0 * yy) * sh[i, 15, ch])
+    return c
 
 
 def sh_basis_numpy(dirs: np.ndarray, k: int) -> np.ndarray:
     """(M, K) float64: the basis at unit directions (M, 3), written from the closed forms in
-    Cartesian coordinates (the slow twin of ``sh_basis``)."""
+    Cartesian coordinates (the slow twin of ``sh_color``'s basis)."""
     d = np.asarray(dirs, np.float64)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
     cols = [np.full_like(x, C0)]
