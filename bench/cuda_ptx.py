@@ -34,6 +34,7 @@ def record(path: Path) -> None:
 
     import dofsplat as ds
     from dofsplat.backends import cuda as bc
+    from dofsplat.backends import cuda_gauss as bg
 
     sigs: dict[str, set] = {}
 
@@ -50,10 +51,12 @@ def record(path: Path) -> None:
                 return launch(*args)
             return call
 
-    for name in dir(bc):
-        obj = getattr(bc, name)
-        if type(obj).__name__ == "FakeCUDAKernel" and not getattr(obj, "_device", False):
-            setattr(bc, name, Recorder(name, obj))
+    for module in (bc, bg):
+        for name in dir(module):
+            obj = getattr(module, name)
+            if type(obj).__name__ == "FakeCUDAKernel" and not getattr(obj, "_device", False) \
+                    and obj.fn.__module__ == module.__name__:
+                setattr(module, name, Recorder(f"{module.__name__}.{name}", obj))
 
     n = 6
     g = (np.arange(n) - (n - 1) / 2) / n
@@ -73,6 +76,13 @@ def record(path: Path) -> None:
     bc.render_frame(disks, camera, lens, ds.RenderSettings(lens_samples=4))  # _accumulate
     x = np.arange(3000, dtype=np.uint8)  # a scan deep enough for _scan_add
     bc.exclusive_scan(bc._upload(x), x.size, bc.cuda.device_array(x.size + 1, np.int64))
+    rng = np.random.default_rng(1)  # a Gaussian scene: pinhole, and the default frame
+    gaussians = ds.Gaussians(positions=rng.uniform(-0.5, 0.5, (20, 3)),
+                             scales=rng.uniform(0.02, 0.1, (20, 3)),
+                             rotations=rng.normal(size=(20, 4)), opacity=np.full(20, 0.8),
+                             sh=rng.normal(0, 0.3, (20, 4, 3)))
+    for g_lens in (None, lens):
+        bg.render_gaussians_cuda(gaussians, camera, g_lens, ds.RenderSettings(device="cuda"))
     with open(path, "wb") as f:
         pickle.dump({k: sorted(v, key=str) for k, v in sigs.items()}, f)
 
@@ -87,16 +97,18 @@ def compile_all(path: Path, cc: tuple[int, int]) -> int:
         compute_capability = cc
 
     dispatcher.get_current_device = lambda: Device()
-    from dofsplat.backends import cuda as bc
+    import importlib
 
     with open(path, "rb") as f:
         sigs = pickle.load(f)
-    sigs["probe_kernel"] = [(numba.types.Array(numba.float64, 1, "C"),)]
+    sigs["dofsplat.backends.cuda.probe_kernel"] = [(numba.types.Array(numba.float64, 1, "C"),)]
     failures = 0
     for name in sorted(sigs):
+        module, _, kernel = name.rpartition(".")
         for types in sigs[name]:
             try:
-                ptx, _ = cuda.compile_ptx(getattr(bc, name).py_func, types, cc=cc)
+                fn = getattr(importlib.import_module(module), kernel).py_func
+                ptx, _ = cuda.compile_ptx(fn, types, cc=cc)
                 print(f"ok    {name}: {len(ptx):,} characters of PTX")
             except Exception as e:  # noqa: BLE001 - report every kernel, then fail
                 failures += 1

@@ -51,9 +51,10 @@ def render(surfels: Surfels | Gaussians, camera: Camera,
     if isinstance(surfels, Gaussians):
         if hierarchy is not None:
             raise DofsplatError("render(): a Gaussian scene takes no surfel hierarchy")
-        if settings.device == "cuda":
-            raise DofsplatError("the GPU backend does not draw Gaussian scenes yet: render "
-                                "them with device 'cpu' (or 'auto')")
+        if resolve_device(settings.device) == "cuda":
+            from .backends.cuda_gauss import render_gaussians_cuda
+
+            return render_gaussians_cuda(surfels, camera, lens, settings)  # the same stages, on the GPU
         from .backends.cpu_gauss import render_gaussians_cpu
 
         return render_gaussians_cpu(surfels, camera, lens, settings)

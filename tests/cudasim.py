@@ -7,9 +7,9 @@ CPU (no GPU, no numba-cuda). NUMBA_ENABLE_CUDASIM is read when numba is first im
 holds for the process, hence a second pytest; the option sets it (and
 DOFSPLAT_TEST_CUDASIM, DOFSPLAT_REQUIRE_CUDA: the simulator must load; DOFSPLAT_MAX_SKIPS=0:
 nothing may skip) before any test module imports numba. Every CUDA thread is a Python thread
-there, so of the whole-frame tests only the one with 4 lens parts and LOD runs: with the
-stage tests it launches every kernel of dofsplat/backends/cuda.py, which the module's last
-test checks.
+there, so of the whole-frame tests only the surfels' one with 4 lens parts and LOD and the
+Gaussians' default frame run: with the stage tests they launch every kernel of
+dofsplat/backends/cuda.py and cuda_gauss.py, which the module's last parity test checks.
 """
 
 from __future__ import annotations
@@ -18,10 +18,9 @@ import os
 from pathlib import Path
 
 SIMULATED_FILE = "test_cuda.py"
-# the whole-frame parity cases left out on the simulator: they launch no kernel that
-# test_frame_matches_cpu[A2-lod] does not
-LEFT_OUT = "test_frame_matches_cpu"
-KEPT = "A2-lod"
+# the whole-frame parity cases left out on the simulator (test name: the case kept): they
+# launch no kernel that the kept case does not
+LEFT_OUT = {"test_frame_matches_cpu": "A2-lod", "test_gaussian_frame_matches_cpu": "default"}
 
 
 def add_option(parser) -> None:
@@ -47,7 +46,8 @@ def select(config, items) -> None:
         return
     keep, drop = [], []
     for item in items:
-        whole_frame = item.name.startswith(LEFT_OUT) and KEPT not in item.name
+        name, _, case = item.name.partition("[")
+        whole_frame = name in LEFT_OUT and LEFT_OUT[name] + "]" != case
         (drop if whole_frame or item.get_closest_marker("cuda") is None else keep).append(item)
     if drop:
         config.hook.pytest_deselected(items=drop)
