@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import numba
-
 # Breakpoints of the piecewise curve: below them the curve is a straight line.
-_SRGB_KNEE = 0.04045  # in encoded (sRGB) units
+SRGB_KNEE = 0.04045  # in encoded (sRGB) units
 _LINEAR_KNEE = 0.0031308  # the same point in linear units
 
 
@@ -24,17 +22,8 @@ def srgb_to_linear(x) -> np.ndarray:
     """
     x = _as_float(x)
     # max() keeps the power away from negative inputs in the branch np.where discards
-    curve = ((np.maximum(x, _SRGB_KNEE) + 0.055) / 1.055) ** 2.4
-    return np.where(x <= _SRGB_KNEE, x / 12.92, curve).astype(x.dtype, copy=False)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def srgb_value_to_linear(x):
-    """``srgb_to_linear`` of one value in [0, 1] (for kernels: the CUDA backend compiles it
-    as a device function too)."""
-    if x <= _SRGB_KNEE:
-        return x / 12.92
-    return ((x + 0.055) / 1.055) ** 2.4
+    curve = ((np.maximum(x, SRGB_KNEE) + 0.055) / 1.055) ** 2.4
+    return np.where(x <= SRGB_KNEE, x / 12.92, curve).astype(x.dtype, copy=False)
 
 
 def linear_to_srgb(x) -> np.ndarray:

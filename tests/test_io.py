@@ -74,10 +74,10 @@ def test_srgb_known_values():
 
 
 def test_the_kernels_srgb_decode_is_the_arrays():
-    """colors.srgb_value_to_linear (one value, for the Gaussian kernels and their CUDA twins)
+    """gauss.composite.srgb_value_to_linear (one value, for the Gaussian kernels and their CUDA twins)
     against srgb_to_linear on either side of the knee: the same formula in float64, so to
     1e-15."""
-    from dofsplat.colors import srgb_value_to_linear
+    from dofsplat.gauss.composite import srgb_value_to_linear
 
     x = np.concatenate([np.linspace(0.0, 1.0, 1001), [0.04045, np.nextafter(0.04045, 1.0)]])
     got = np.array([srgb_value_to_linear(v) for v in x])

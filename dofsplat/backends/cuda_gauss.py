@@ -8,7 +8,7 @@ As in ``backends.cuda``, nothing per Gaussian or per pixel is written twice: ``d
 compiles the CPU's own functions again as device functions:
 
     project_gaussian (gauss/project.py, with sh_color), gaussian_alpha, blend, start_pixel,
-    seen_share, lens_share, finish_pixel (gauss/composite.py, with colors.srgb_value_to_linear)
+    seen_share, lens_share, finish_pixel with srgb_value_to_linear (gauss/composite.py)
 
 What is written here is only the parallel structure around them:
 

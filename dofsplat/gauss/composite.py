@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from ..colors import srgb_value_to_linear
+from ..colors import SRGB_KNEE
 from ..jit import numba
 from .project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_G, F_OPACITY, F_R, F_X, F_Y,
                       MAX_ALPHA)
@@ -200,6 +200,15 @@ def finish_shares(best):
     """best[i] = lens_share(best[i]) for every Gaussian, in place."""
     for i in numba.prange(best.shape[0]):
         best[i] = lens_share(best[i])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def srgb_value_to_linear(x):
+    """``colors.srgb_to_linear`` of one value in [0, 1], for the kernels (and their CUDA
+    twins); ``colors`` itself stays free of numba, so that importing dofsplat is cheap."""
+    if x <= SRGB_KNEE:
+        return x / 12.92
+    return ((x + 0.055) / 1.055) ** 2.4
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
