@@ -53,6 +53,9 @@ class Gaussians:
     # the up direction a default camera takes (``cli.framing``): trainers' scenes come from
     # COLMAP's OpenCV-style cameras, y down (a reader may set another, e.g. from cameras.json)
     up_hint = (0.0, -1.0, 0.0)
+    # a trainer's first camera (eye, target, up, frustum, size), from cameras.json
+    # (``io.cameras_json``): the CLI's default view, as a depth capture's sensor is
+    capture = None
 
     def __post_init__(self):
         n = _rows(self.positions, 3, "positions")

@@ -715,3 +715,74 @@ def test_real_scenes_flatten_to_surfels():
         s = gaussians_to_surfels(g, source="donut")
     assert s.is_elliptical and 40_000 < len(s) <= 45_624
     assert np.all(s.radius_v <= s.radius + 1e-9)
+
+
+# -- a trainer's cameras.json ------------------------------------------------------------
+
+def trainer_layout(tmp_path, cameras):
+    """A trainer's output folder: MODEL/point_cloud/iteration_7000/point_cloud.ply (a white
+    Gaussian at (2, 1, 0) and a red one 0.3 along +x from it) and MODEL/cameras.json
+    (cameras: the JSON to write, or a string written as it is). Returns the PLY's path."""
+    ply = tmp_path / "model" / "point_cloud" / "iteration_7000" / "point_cloud.ply"
+    ply.parent.mkdir(parents=True)
+    positions = np.array([[2.0, 1.0, 0.0], [2.3, 1.0, 0.0]])
+    sh = np.zeros((2, 1, 3))
+    sh[0, 0] = (1.0 - 0.5) / SH_C0  # white
+    sh[1, 0] = (np.array([1.0, 0.0, 0.0]) - 0.5) / SH_C0  # red
+    cols = gaussian_ply_columns(positions, np.log(np.full((2, 3), 0.04)),
+                                np.tile([1.0, 0, 0, 0], (2, 1)), np.full(2, 6.0), sh)
+    PlyData([PlyElement.describe(np.rec.fromarrays(list(cols.values()), names=list(cols)),
+                                 "vertex")]).write(str(ply))
+    text = cameras if isinstance(cameras, str) else json.dumps(cameras)
+    (tmp_path / "model" / "cameras.json").write_text(text)
+    return ply
+
+
+# a camera 3 units from the white Gaussian, looking along -z, with the world's +x up: its
+# rotation's columns are its right (-y), down (-x) and forward (-z) axes, as 3DGS writes them
+TRAINER_CAMERA = {"id": 0, "img_name": "0001", "width": 800, "height": 600,
+                  "position": [2.0, 1.0, 3.0],
+                  "rotation": [[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]],
+                  "fx": 700.0, "fy": 700.0}
+
+
+def test_a_trainers_cameras_json_gives_the_default_view(tmp_path):
+    """``dofsplat render`` of a trainer's point_cloud.ply starts from the first camera of
+    MODEL/cameras.json: the white Gaussian it looks at lands on the image centre, the red
+    one (0.3 along the camera's up, +x) above it, and the view's width is fx's: 2 atan(400 /
+    700) across, so the red one is 0.3 / 3 x 700 / 800 x 80 = 7 px above the centre at 80 px
+    wide (aspect kept: 80 x 60)."""
+    ply = trainer_layout(tmp_path, [TRAINER_CAMERA, {**TRAINER_CAMERA, "position": [9, 9, 9]}])
+    scene = load(ply)
+    np.testing.assert_allclose(scene.capture["eye"], [2.0, 1.0, 3.0])
+    np.testing.assert_allclose(scene.capture["target"], [2.0, 1.0, 2.0])
+    np.testing.assert_allclose(scene.up_hint, [1.0, 0.0, 0.0])
+    out = tmp_path / "view.png"
+    assert cli.main(["render", str(ply), "-o", str(out), "--no-dof", "-q", "--size",
+                     "80x60"]) == 0
+    image = np.asarray(Image.open(out).convert("RGB"), np.float64)
+    white = image.sum(axis=2) - 2 * np.abs(image[..., 0] - image[..., 1])
+    row, col = np.unravel_index(np.argmax(white), white.shape)
+    assert abs(row - 29.5) <= 1 and abs(col - 39.5) <= 1, (row, col)
+    red = image[..., 0] - image[..., 1]
+    r_row, r_col = np.unravel_index(np.argmax(red), red.shape)
+    assert abs((row - r_row) - 7) <= 1 and abs(r_col - col) <= 1, (r_row, r_col)
+
+
+@pytest.mark.parametrize("text, why", [
+    ("{not json", "not JSON"),
+    ("[]", "not a non-empty list of cameras"),
+    (json.dumps([{"id": 0}]), "camera 0 has no width, height, position, rotation, fx, fy"),
+    (json.dumps([{**TRAINER_CAMERA, "fx": -1}]), "sizes and focal lengths > 0"),
+    (json.dumps([{**TRAINER_CAMERA, "rotation": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}]),
+     "camera 0: rotation is not a rotation matrix"),
+    (json.dumps([{**TRAINER_CAMERA, "position": [1, 2]}]), "must be numbers"),
+])
+def test_a_damaged_cameras_json_is_said_and_ignored(tmp_path, text, why):
+    """A cameras.json that cannot be read is named in one warning, with the reason, and the
+    scene loads without it (framed as any scene: y down)."""
+    ply = trainer_layout(tmp_path, text)
+    with pytest.warns(UserWarning, match="cameras.json: ignored") as said:
+        scene = load(ply)
+    assert why in str(said[0].message)
+    assert scene.capture is None and scene.up_hint == (0.0, -1.0, 0.0)

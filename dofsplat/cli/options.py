@@ -231,8 +231,9 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
         + ("Default: the scene's camera." if is_demo else
            "Default: the model seen from its most visible side (of the four across the up "
            "axis: the one whose small pinhole render covers the most pixels; a Gaussian "
-           "scene from +z; a depth capture from its sensor), from as near as keeps the "
-           "whole model in the frame."))
+           "scene from +z, or from its trainer's first camera where a cameras.json is "
+           "beside it; a depth capture from its sensor), from as near as keeps the whole "
+           "model in the frame."))
     cam.add_argument("--size", metavar="WxH", type=image_size,
                      help=f"image size in pixels (default: {w}x{h}{demo_size})")
     cam.add_argument("--eye", nargs=3, type=finite_number, metavar=("X", "Y", "Z"),

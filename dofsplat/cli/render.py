@@ -86,14 +86,21 @@ def model_view(args, surfels):
     (``framing.framing_camera``); the user's camera options applied. The default focus is
     the distance to --target where one is given, else the surface seen at the image centre
     (``framing.centre_focus``); ``args.default_focus_source`` says which, in words."""
+    from ..gaussians import Gaussians
+
     lo, hi = surfels.view_bounds()
     half_diagonal = 0.5 * math.dist(lo.tolist(), hi.tolist())
     capture = getattr(surfels, "capture", None)
     placed = any(getattr(args, a, None) is not None
                  for a in ("eye", "target", "up", "fov", "frustum", "focal_length_mm"))
     if capture is not None and not placed:
-        # a depth camera's capture: seen from its sensor, through its own frustum
-        camera = camera_from_args(args, capture_camera(capture, args.size))
+        # a depth camera's capture: seen from its sensor, through its own frustum; a
+        # Gaussian scene from its trainer's first camera, at render's default width
+        size = args.size
+        if size is None and isinstance(surfels, Gaussians):
+            width = DEFAULT_SIZE["render"][0]
+            size = (width, max(1, round(width * capture["size"][1] / capture["size"][0])))
+        camera = camera_from_args(args, capture_camera(capture, size))
     else:
         width, height = args.size or DEFAULT_SIZE["render"]
         if args.eye is not None or args.target is not None:

@@ -30,6 +30,7 @@ from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
 from . import prepared
 from .pcd import PCD_EXTENSIONS, read_pcd
+from .cameras_json import attach_cameras
 from .gaussians import write_gaussian_ply
 from .ply import (ply_kind, ply_options, read_ply, read_ply_header, read_surfel_ply,
                   write_surfel_ply)
@@ -86,7 +87,9 @@ def load(path, cache: str = "auto", **options) -> Surfels | Gaussians:
     per-surfel normalisation of Section 6.3; a surfel or 3DGS PLY is taken as it is unless
     given one) for all (docs/formats.md lists them). Gaussian scenes take no options but a
     SOG LOD chain's ``level`` (0, the full scene, by default), and are never cached: they
-    need no preparation, and decode in a second or two. Raises DofsplatError for a missing
+    need no preparation, and decode in a second or two; a trainer's ``cameras.json`` beside
+    one (or above its ``point_cloud/iteration_N/``) gives it its default view
+    (:mod:`dofsplat.io.cameras_json`). Raises DofsplatError for a missing
     file, an unsupported extension, an option the loader does not take, or whatever the
     loader finds wrong with the file.
     """
@@ -96,7 +99,10 @@ def load(path, cache: str = "auto", **options) -> Surfels | Gaussians:
     if cache not in ("auto", "off"):
         raise DofsplatError(f"cache must be 'auto' or 'off', got {cache!r}")
     use_cache = cache == "auto" and not _holds_gaussians(path, loader)
-    return prepared.load_prepared(path, loader, options, use_cache=use_cache)
+    model = prepared.load_prepared(path, loader, options, use_cache=use_cache)
+    if isinstance(model, Gaussians):
+        attach_cameras(model, path)  # a trainer's cameras.json: the default view
+    return model
 
 
 def model_options(path) -> tuple[str, tuple[str, ...]]:
