@@ -1,7 +1,8 @@
 """Gaussian scenes on the GPU against the CPU: milliseconds per frame (issue 48).
 
     python bench/gpu_gauss.py [--scenes donut guitar biker playbot] [--size 1920x1080]
-        [--repeat 10] [--cpu-repeat 2] [--no-gpu] [--data DIR] [--json FILE]
+        [--cocs 10 35] [--repeat 10] [--cpu-repeat 2] [--no-gpu] [--data DIR] [--json FILE]
+    python bench/gpu_gauss.py --no-gpu --cocs --cpu-repeat 5   # the CPU's pinhole frames
 
 Each shared 3DGS scene (playbot: its finest level, 500,000 Gaussians), seen by the default
 camera of ``dofsplat render`` (bench/gaussians.py's ``default_camera``), focused on the
@@ -81,6 +82,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--size", default="1920x1080", metavar="WxH")
+    ap.add_argument("--cocs", nargs="*", type=float, default=list(COCS), metavar="PX",
+                    help="largest circles of confusion of the blurred frames (none: the "
+                         "pinhole frame only)")
     ap.add_argument("--repeat", type=int, default=10, help="GPU frames timed (median)")
     ap.add_argument("--cpu-repeat", type=int, default=2, help="CPU frames timed (median)")
     ap.add_argument("--no-gpu", action="store_true", help="time the CPU backend alone")
@@ -115,7 +119,7 @@ def main(argv=None) -> int:
         cpu_settings = ds.RenderSettings()
         pinhole = ds.render(scene, camera, None, cpu_settings)  # compiles; its depth focuses
         cases = [(0.0, "pinhole", None, cpu_settings)]
-        for coc in COCS:
+        for coc in args.cocs:
             lens = lens_for(scene, camera, coc, pinhole.depth)
             cases += [(coc, "default", lens, cpu_settings),
                       (coc, "no LOD", lens, replace(cpu_settings, gaussian_lod=False))]
