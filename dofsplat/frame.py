@@ -24,6 +24,7 @@ from .surfels import Surfels
 DEVICES = ("cpu", "cuda", "auto")  # RenderSettings.device (backends.resolve_device)
 RECONSTRUCTIONS = ("soft", "paper")
 GAUSSIAN_BLURS = ("ours", "viewers")  # RenderSettings.gaussian_blur
+LENS_PARTS = ("everywhere", "needed")  # RenderSettings.lens_parts
 MAX_LOD_MIN_NODE = 64  # RenderSettings.lod_min_node: larger would leave LOD little to do
 
 
@@ -51,6 +52,7 @@ class RenderSettings:
     taper: bool = False  # LOD nodes' kernels fall to 0 at the cutoff (exp(-q) - e^-c): no hard-edged discs
     reconstruction: str = "soft"  # "soft": merge by parallax, without seams (ours); "paper": z-ranges only (Section 6.4)
     lens_samples: int = 1  # K: the aperture drawn as K parts, each a frame from its own lens point (splat/subaperture.py); 1 = the paper's one pass
+    lens_parts: str = "everywhere"  # with K > 1: "everywhere", or "needed": one pass, and the parts only on the tiles where a pixel held two surfaces or more (and the tiles beside them), blended over a tile (backends/cpu.py, draw_parts_where_needed; the CPU backend)
     gaussian_blur: str = "ours"  # Gaussian scenes: "ours" (the aperture's variance added, opacity spread, the 1/255 cut on the sharp footprint's scale) or "viewers" (the baseline of PlayCanvas and Spark: CoC^2 added, the cut on the spread opacity); gauss/project.py
     gaussian_lens_samples: int = 4  # Gaussian scenes: the lens drawn in this many parts (as lens_samples, which wins when larger): 1.1-7.3 dB closer to the lens reference than one pass at 0.9-1.5 x its cost (bench/RESULTS.md); 1 = one pass
     gaussian_lod: bool = True  # Gaussian scenes: draw coarser Gaussians where the lens blurs (gauss/lod.py; the stop is lod_blur_fraction; lod=False turns it off too): at 35 px 3.8-8.7x faster, 1.9-3.8 dB closer to the lens reference on the donut and playbot, 2.5 dB further on the guitar (bench/RESULTS.md)
@@ -105,6 +107,9 @@ class RenderSettings:
                     or not 1 <= value <= MAX_LENS_SAMPLES:
                 raise DofsplatError(f"{name} must be an integer in 1..{MAX_LENS_SAMPLES}, "
                                     f"got {value!r}")
+        if self.lens_parts not in LENS_PARTS:
+            raise DofsplatError(f"lens_parts must be one of {', '.join(LENS_PARTS)}, "
+                                f"got {self.lens_parts!r}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
         if self.gaussian_blur not in GAUSSIAN_BLURS:

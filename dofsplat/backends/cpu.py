@@ -55,11 +55,21 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
 
         if parts is None:
             image, depth, weight, frame_stats = draw(source, rgb, camera, blur_lens, settings, gain)
+        elif settings.lens_parts == "needed":
+            # the one pass from its own cut, chosen by the whole lens's blur (coarser)
+            one, one_rgb, one_gain = source, rgb, gain
+            if settings.lod:
+                one = select(surfels, camera, lens, settings, hierarchy)
+                one_rgb, one_gain = shade_splats(one, camera, settings)
+            image, depth, weight, frame_stats = draw_parts_where_needed(
+                (one, one_rgb, one_gain), (source, rgb, gain), camera, blur_lens, parts,
+                settings)
         else:
             image, depth, weight, frame_stats = draw_parts(source, rgb, parts, settings, gain)
         n_selected = source.size
     for stage in ("project_ms", "bin_ms", "front_ms", "raster_ms"):
         times[stage] = frame_stats.pop(stage)
+    frame_stats.pop("tile_layers")  # per tile, for the lens's parts (not a number to report)
     times["total_ms"] = _ms(t_start)
 
     stats = {
@@ -75,12 +85,14 @@ def render_cpu(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     return RenderResult(image=image, depth=depth, weight=weight, stats=stats)
 
 
-def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None):
-    """Project, bin and rasterise one view of the splats: (image, depth, weight, stats)."""
+def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None, tiles=None):
+    """Project, bin and rasterise one view of the splats: (image, depth, weight, stats).
+    tiles: None, or (n_ty, n_tx) bool: only the splats that reach these tiles are drawn,
+    after the front pass has seen them all (the image elsewhere is not the view's)."""
     t = time.perf_counter()
     splats, bbox, visible = project(source, rgb, camera, lens, settings, workspace=_workspace(),
                                     gain=gain)
-    return draw_splats(splats, bbox, visible, camera, lens, settings, _ms(t))
+    return draw_splats(splats, bbox, visible, camera, lens, settings, _ms(t), tiles)
 
 
 # nodes of an LOD cut gathered, shaded and projected at a time (draw_cut): 2^20 of them
@@ -227,25 +239,26 @@ def draw_cut_banded(surfels: Surfels, tree, cut, camera: Camera, lens,
 
 
 def draw_splats(splats, bbox, visible, camera: Camera, lens, settings: RenderSettings,
-                project_ms: float):
+                project_ms: float, tiles=None):
     """Bin and rasterise projected splats (``draw``'s second half): (image, depth, weight,
-    stats)."""
+    stats); tiles: ``draw``'s."""
     t = time.perf_counter()
     bands = plan_bands(bbox, visible, camera, settings)
     bin_ms = _ms(t)
     image, depth, weight, stats = rasterize(splats, bbox, visible, bands, camera, settings,
-                                            merge_parameters(camera, lens, settings), lens)
+                                            merge_parameters(camera, lens, settings), lens,
+                                            tiles=tiles)
     stats["splats_rendered"] = int(np.count_nonzero(visible))
     stats["project_ms"] = project_ms
     stats["bin_ms"] += bin_ms
     return image, depth, weight, stats
 
 
-def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
+def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None, tiles=None):
     """The lens's parts (``splat/subaperture.py``), each ``draw``n from its own camera with
     the residual blur, averaged: (image, depth, weight, stats summed over the parts;
     splats_rendered is the mean per part). depth is the nearest any part saw, as the
-    reference's."""
+    reference's. tiles: ``draw``'s, for every part."""
     cam = parts.cameras[0]
     image = np.zeros((cam.height, cam.width, 4), np.float32)
     depth = np.full((cam.height, cam.width), np.inf, np.float32)
@@ -253,7 +266,8 @@ def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
     total: dict = {}
     share = np.float32(1.0 / len(parts.cameras))
     for part_camera in parts.cameras:
-        im, dp, wt, stats = draw(source, rgb, part_camera, parts.residual, settings, gain)
+        im, dp, wt, stats = draw(source, rgb, part_camera, parts.residual, settings, gain,
+                                 tiles)
         image += im * share  # float32 sums of K <= 64 frames: rounding far below 1/255
         weight += wt * share
         np.minimum(depth, dp, out=depth)
@@ -261,6 +275,48 @@ def draw_parts(source, rgb, parts, settings: RenderSettings, gain=None):
             total[key] = total.get(key, 0) + value
     total["splats_rendered"] = int(round(total["splats_rendered"] / len(parts.cameras)))
     return image, depth, weight, total
+
+
+def draw_parts_where_needed(one, part_splats, camera: Camera, lens, parts,
+                            settings: RenderSettings):
+    """The lens in parts only where visibility is in doubt (``lens_parts="needed"``).
+
+    One pass draws the whole frame through the whole lens. Where each pixel's A-buffer held
+    one surface (or none), one surface covers the pixel's circle of confusion and the parts
+    would draw the same thing; where a pixel held two or more (surfaces at different depths
+    meeting under a blur), the parts decide visibility better (docs/maths.md, "The lens in
+    parts"). So each part's front pass sees every splat (its visibility looks a circle of
+    confusion away), but only the splats that reach the tiles with such a pixel, or the
+    tiles beside them, are rasterised; the parts are blended into the one pass: weight 1 on
+    the doubtful tiles, falling linearly to 0 one tile beyond them.
+    Returns ``draw_parts``'s (image, depth, weight, stats), stats summed over the one pass
+    and the parts, with ``parts_tiles``: the share of tiles drawn in parts. one,
+    part_splats: (source, rgb, gain) of the one pass and of the parts (with LOD, the cuts
+    chosen by the whole lens's blur and by a part's)."""
+    from scipy import ndimage
+
+    from ..raster.abuffer import TILE
+
+    image, depth, weight, stats = draw(*one[:2], camera, lens, settings, one[2])
+    doubt = stats["tile_layers"] >= 2
+    stats["parts_tiles"] = float(doubt.mean())
+    if not doubt.any():
+        return image, depth, weight, stats
+    beside = ndimage.binary_dilation(doubt, np.ones((3, 3), bool))
+    source, rgb, gain = part_splats
+    p_image, p_depth, p_weight, p_stats = draw_parts(source, rgb, parts, settings, gain, beside)
+    # the blend: 1 on the doubtful tiles' pixels, to 0 over one tile beyond them
+    h, w = camera.height, camera.width
+    core = np.repeat(np.repeat(doubt, TILE, axis=0), TILE, axis=1)[:h, :w]
+    blend = np.clip(1.0 - ndimage.distance_transform_edt(~core) / TILE, 0.0, 1.0)
+    blend = blend.astype(np.float32)
+    image += blend[..., None] * (p_image - image)
+    weight += blend * (p_weight - weight)
+    depth = np.where(blend > 0.0, np.minimum(depth, p_depth), depth)
+    for key, value in p_stats.items():
+        if key != "splats_rendered":
+            stats[key] = stats.get(key, 0) + value
+    return image, depth, weight, stats
 
 
 # -- stages ------------------------------------------------------------------------------
@@ -397,7 +453,7 @@ def plan_bands(bbox, visible, camera: Camera, settings: RenderSettings,
 
 
 def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSettings,
-              merge=(0.0, 0.0, 0.15, 0.5), lens=None, rows=None, front=None):
+              merge=(0.0, 0.0, 0.15, 0.5), lens=None, rows=None, front=None, tiles=None):
     """A-buffer rasterisation and resolve, band by band (Section 6.4).
 
     lens: the lens whose aperture shape the splats carry (``aperture_shape``).
@@ -409,12 +465,14 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     rows: None, or a function (ty0, ty1) -> (splats, bbox, visible) that projects afresh the
     splats of each band, in their order (``draw_cut_banded``; splats, bbox and visible are
     then None, and the time it takes is not counted here); front: the front map, drawn
-    already (``draw_cut_banded``), else it is drawn here when the front pass runs.
+    already (``draw_cut_banded``), else it is drawn here when the front pass runs; tiles:
+    None, or (n_ty, n_tx) bool: after the front pass, only these tiles are rasterised, from
+    the splats that reach them (``abuffer.keep_tiles``, ``keep_tile_lists``).
     """
     import numba
 
     from ..raster.abuffer import (FRONT_MARGIN, TILE, apply_visibility, bin_splats,
-                                 rasterize_band)
+                                 keep_tile_lists, keep_tiles, rasterize_band)
 
     w, h = camera.width, camera.height
     n_tx = -(-w // TILE)
@@ -427,6 +485,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     u_c = math.sqrt(2.0 * settings.cutoff)
     frags = overflows = pairs = 0
     bin_ms = raster_ms = front_ms = 0.0
+    layers = np.zeros((-(-h // TILE), n_tx), np.int64)  # the most surfaces a pixel held, per tile
 
     if rows is not None and front is None and front_pass(merge, settings):
         raise ValueError("rasterize: bands projected afresh need their front map drawn first")
@@ -438,6 +497,8 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
         front_chunk(splats, visible, camera, front, margin)
         apply_visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
         front_ms = _ms(t)
+    if tiles is not None and rows is None:
+        keep_tiles(bbox, visible, tiles)
     for ty0, ty1 in bands:
         sp, bb, vis = (splats, bbox, visible) if rows is None else rows(ty0, ty1)
         if rows is not None and front is not None:
@@ -447,19 +508,22 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
             front_ms += _ms(t)
         t = time.perf_counter()
         offsets, ids = bin_splats(bb, vis, n_tx, ty0, ty1)
+        if tiles is not None:
+            offsets, ids = keep_tile_lists(offsets, ids, tiles[ty0:ty1].reshape(-1))
         bin_ms += _ms(t)
         t = time.perf_counter()
-        tile_stats = np.zeros((len(offsets) - 1, 2), np.int64)
+        tile_stats = np.zeros((len(offsets) - 1, 3), np.int64)
         rasterize_band(sp, bb, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
                        background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
                        rho1, blades, table, u_c, numba.config.NUMBA_NUM_THREADS)
         raster_ms += _ms(t)
+        layers[ty0:ty1] = tile_stats[:, 2].reshape(-1, n_tx)
         frags += int(tile_stats[:, 0].sum())
         overflows += int(tile_stats[:, 1].sum())
         pairs += len(ids)
     stats = {"fragments": frags, "abuffer_overflows": overflows, "tile_pairs": pairs,
              "bands": len(bands), "bin_ms": bin_ms, "raster_ms": raster_ms,
-             "front_ms": front_ms}
+             "front_ms": front_ms, "tile_layers": layers}
     return image, depth, weight, stats
 
 

@@ -472,6 +472,7 @@ def settings_from_args(args):
                           reconstruction=getattr(args, "reconstruction", "soft"),
                           taper=getattr(args, "taper", False),
                           lens_samples=getattr(args, "lens_samples", 1),
+                          lens_parts=getattr(args, "lens_parts", "everywhere"),
                           sharp_visibility=getattr(args, "sharp_visibility", False))
 
 
@@ -704,7 +705,7 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "lod_min_node": settings.lod_min_node, "show_lod": settings.show_lod,
         "device": settings.device, "reconstruction": settings.reconstruction,
         "taper": settings.taper, "lens_samples": settings.lens_samples,
-        "sharp_visibility": settings.sharp_visibility,
+        "lens_parts": settings.lens_parts, "sharp_visibility": settings.sharp_visibility,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}

@@ -368,6 +368,14 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "then shows K lobes instead of the aperture's disc or polygon, so the "
                         "default is 1, the paper's single pass (docs/maths.md, \"the lens in "
                         "parts\")")
+    p.add_argument("--lens-parts", choices=("everywhere", "needed"), default="everywhere",
+                   help="with --lens-samples K > 1: draw the parts everywhere, or only where "
+                        "a pixel's A-buffer held two surfaces or more (and beside them), "
+                        "over one pass of the whole lens elsewhere (CPU; the GPU draws them "
+                        "everywhere). On the fidelity suite it scores within 1.5 dB of the "
+                        "parts everywhere on 16 of 18 frames and draws single surfaces and "
+                        "lone points with the aperture's own shape, but costs as much or more (bench/RESULTS.md, \"The lens in "
+                        "parts where needed\")")
     lod = p.add_argument_group(
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "

@@ -132,6 +132,41 @@ def tile_rows_pairs(bbox, visible, n_ty):
     return per_row
 
 
+@numba.njit(cache=True, nogil=True)
+def keep_tile_lists(offsets, ids, keep):
+    """(offsets, ids) of ``bin_splats`` with the lists of the tiles not in ``keep`` ((n_tiles,)
+    bool, the band's tiles in the lists' order) emptied: those tiles rasterise nothing."""
+    n_tiles = offsets.shape[0] - 1
+    out_offsets = np.zeros(n_tiles + 1, offsets.dtype)
+    for t in range(n_tiles):
+        n = offsets[t + 1] - offsets[t] if keep[t] else 0
+        out_offsets[t + 1] = out_offsets[t] + n
+    out_ids = np.empty(out_offsets[n_tiles], ids.dtype)
+    for t in range(n_tiles):
+        if keep[t]:
+            out_ids[out_offsets[t]:out_offsets[t + 1]] = ids[offsets[t]:offsets[t + 1]]
+    return out_offsets, out_ids
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def keep_tiles(bbox, visible, tiles):
+    """Drop (visible[k] = False) the splats whose box reaches no tile of ``tiles`` ((n_ty,
+    n_tx) bool, TILE x TILE pixels each): a frame drawn on those tiles only."""
+    n_ty, n_tx = tiles.shape
+    for k in numba.prange(visible.shape[0]):
+        if not visible[k]:
+            continue
+        hit = False
+        for ty in range(max(bbox[k, 2] // TILE, 0), min(bbox[k, 3] // TILE, n_ty - 1) + 1):
+            for tx in range(max(bbox[k, 0] // TILE, 0), min(bbox[k, 1] // TILE, n_tx - 1) + 1):
+                if tiles[ty, tx]:
+                    hit = True
+                    break
+            if hit:
+                break
+        visible[k] = hit
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def bin_splats(bbox, visible, n_tx, ty0, ty1):
     """Counting sort of tile-splat pairs (tiles of TILE x TILE pixels) for tile rows
@@ -696,7 +731,8 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     """Rasterise and resolve the tiles of one band (tile rows ty0..) into the output images.
 
     image: (H, W, 4) float32; depth, weight: (H, W) float32; tile_stats: (n_tiles, 2) int64
-    receives fragments generated and A-buffer overflows per tile. pool: the number of
+    receives fragments generated and A-buffer overflows per tile, and with a third column
+    the most surfaces (A-buffer entries) any pixel of the tile held. pool: the number of
     threads' tile buffers, at least numba's thread count (``numba.config.NUMBA_NUM_THREADS``,
     read by the caller: read here it would be a constant of the cached machine code, and a
     process with more threads than the one that compiled it would write past the buffers).
@@ -843,10 +879,14 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     bb += bx
                     p += 1
         res, order, scratch = ress[me], orders[me], scratches[me]
+        layers = 0
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)
+                layers = max(layers, cnt[p])
                 resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch,
                                  image, depth, weight, i, j, coc_k, inv_focus, rho0, rho1)
         tile_stats[t, 0] = frags
         tile_stats[t, 1] = overflows
+        if tile_stats.shape[1] > 2:
+            tile_stats[t, 2] = layers
