@@ -27,9 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import sys
-import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -41,8 +39,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import dofsplat as ds  # noqa: E402
 from dofsplat.io import load  # noqa: E402
 from gaussians import default_camera, lens_for  # noqa: E402
+from gpu import SHARED, gpu_name, wall_ms  # noqa: E402
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SCENES = {
     "donut": "gaussian_donut/fused.ply",
     "guitar": "gaussian_scenes/guitar.compressed.ply",
@@ -60,22 +58,6 @@ def find(data: Path, relpath: str) -> Path:
         if p.exists():
             return p
     raise SystemExit(f"bench/gpu_gauss.py: {relpath} is not under {data}")
-
-
-def wall_ms(fn, repeat: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        times.append((time.perf_counter() - t) * 1000.0)
-    return statistics.median(times), out
-
-
-def gpu_name() -> str:
-    from numba import cuda
-
-    dev = cuda.get_current_device()
-    return dev.name.decode() if isinstance(dev.name, bytes) else str(dev.name)
 
 
 def main(argv=None) -> int:

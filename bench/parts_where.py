@@ -92,21 +92,14 @@ def _keep_layers() -> None:
     """Note each drawn frame's per-tile surface counts (``rasterize``'s stats) in LAYERS."""
     from dofsplat.backends import cpu
 
-    draw = cpu.draw_cut
+    def noting(draw):
+        def drawn(*args, **kwargs):
+            out = draw(*args, **kwargs)
+            LAYERS.append(out[3]["tile_layers"].copy())
+            return out
+        return drawn
 
-    def noting(*args, **kwargs):
-        out = draw(*args, **kwargs)
-        LAYERS.append(out[3]["tile_layers"].copy())
-        return out
-    cpu.draw_cut = noting
-
-    draw_one = cpu.draw
-
-    def noting_one(*args, **kwargs):
-        out = draw_one(*args, **kwargs)
-        LAYERS.append(out[3]["tile_layers"].copy())
-        return out
-    cpu.draw = noting_one
+    cpu.draw_cut, cpu.draw = noting(cpu.draw_cut), noting(cpu.draw)
 
 
 def tiles_of(mask: np.ndarray) -> np.ndarray:

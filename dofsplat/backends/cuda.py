@@ -112,6 +112,7 @@ THREADS = 32 if SIMULATOR else 256  # threads per block of the one-thread-per-it
 PIXELS = TILE * TILE  # threads per block of the rasteriser: one per pixel of a tile
 SCAN_BLOCK = 32 if SIMULATOR else 256  # elements per block of the prefix sum
 SORT_SHARED = 64 if SIMULATOR else 4096  # tile lists up to this length are sorted in shared memory
+SORT_KEYS = SORT_SHARED // 2  # int64 keys sorted in shared memory (_sort_keys)
 LOD_BLOCKS = 1024  # the LOD cut's grid at most (its kernel loops over a level's nodes)
 
 
@@ -381,25 +382,41 @@ def _bitonic_sort(a, lo, n, tid, n_threads):
         size *= 2
 
 
-@cuda.jit
-def _sort_tiles(offsets, ids):
-    """One block per tile: sort the tile's splat list by splat index."""
+@cuda.jit(device=True)
+def sort_block_list(offsets, a, buf):
+    """The block's list (block t: a[offsets[t]:offsets[t + 1]]) sorted ascending by its
+    threads: in the shared buffer buf when it fits, else where it lies."""
     t = cuda.blockIdx.x
     tid = cuda.threadIdx.x
     lo = offsets[t]
     n = offsets[t + 1] - lo
     if n <= 1:
         return  # the whole block returns: no barrier is left waiting
-    if n <= SORT_SHARED:
-        buf = cuda.shared.array(SORT_SHARED, numba.int32)
+    if n <= buf.shape[0]:
         for e in range(tid, n, cuda.blockDim.x):
-            buf[e] = ids[lo + e]
+            buf[e] = a[lo + e]
         cuda.syncthreads()
         _bitonic_sort(buf, 0, n, tid, cuda.blockDim.x)
         for e in range(tid, n, cuda.blockDim.x):
-            ids[lo + e] = buf[e]
+            a[lo + e] = buf[e]
     else:
-        _bitonic_sort(ids, lo, n, tid, cuda.blockDim.x)
+        _bitonic_sort(a, lo, n, tid, cuda.blockDim.x)
+
+
+@cuda.jit
+def _sort_tiles(offsets, ids):
+    """One block per tile: sort the tile's splat list by splat index."""
+    sort_block_list(offsets, ids, cuda.shared.array(SORT_SHARED, numba.int32))
+
+
+@cuda.jit
+def _sort_keys(offsets, keys):
+    """One block per list: sort int64 keys (a Gaussian scene's tiles: backends/cuda_gauss.py),
+    in shared memory up to SORT_KEYS (the int32 sort's bytes). Here, beside the device
+    functions it calls: numba's simulator swaps its fake ``cuda`` module into a module's
+    globals per call, so a kernel that calls another module's device functions that use
+    ``cuda`` races between its threads."""
+    sort_block_list(offsets, keys, cuda.shared.array(SORT_KEYS, numba.int64))
 
 
 @cuda.jit

@@ -15,8 +15,8 @@ What is written here is only the parallel structure around them:
 * project: one thread per Gaussian;
 * bin: tile-Gaussian pairs counted per tile with atomics, offsets by a prefix sum, filled with
   atomics as keys (the depth's float32 bits above the Gaussian's index: positive floats
-  order as their bits do), each tile's keys sorted (the bitonic sort of ``backends.cuda``,
-  one block per tile), so that a tile lists its Gaussians nearest first and equal depths in
+  order as their bits do), each tile's keys sorted (``backends.cuda._sort_keys``, the
+  bitonic sort, one block per tile), so that a tile lists its Gaussians nearest first and equal depths in
   index order, as the CPU's stable sort does;
 * composite: one block per 16 x 16 tile, one thread per pixel, the tile's Gaussians loaded
   into shared memory in batches and blended in order (``gaussian_alpha``, ``blend``); the
@@ -45,8 +45,9 @@ from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian, view_matrix)
 from ..colors import linear_to_srgb
 from .cpu_gauss import BLURS, blur_variance, lod_cut, visibility_cameras
-from .cuda import (SIMULATOR, SORT_SHARED, THREADS, _WS, _bitonic_sort, _blocks, _Clock, _fill,
-                   _scalar, _upload, device_twin, exclusive_scan)
+from . import cuda as surfel_cuda
+from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
+                   exclusive_scan)
 
 _project_gaussian = device_twin(project_gaussian)
 _gaussian_alpha = device_twin(gaussian_alpha)
@@ -59,7 +60,6 @@ _finish_pixel = device_twin(finish_pixel)
 PIXELS = TILE * TILE  # threads per block of the compositing: one per pixel of a tile
 INDEX_BITS = 32  # a sort key: the depth's bits above the Gaussian's index
 INDEX_MASK = (1 << INDEX_BITS) - 1
-SORT_KEYS = SORT_SHARED // 2  # tile lists up to this length are sorted in shared memory (int64)
 
 
 # -- kernels ----------------------------------------------------------------------------------
@@ -106,27 +106,6 @@ def _fill_keys(boxes, visible, depth_bits, n_tx, cursor, keys):
         for ty in range(boxes[g, 2] // TILE, (boxes[g, 3] - 1) // TILE + 1):
             for tx in range(boxes[g, 0] // TILE, (boxes[g, 1] - 1) // TILE + 1):
                 keys[cuda.atomic.add(cursor, ty * n_tx + tx, 1)] = key
-
-
-@cuda.jit
-def _sort_keys(offsets, keys):
-    """One block per tile: sort the tile's keys (nearest first, then by index)."""
-    t = cuda.blockIdx.x
-    tid = cuda.threadIdx.x
-    lo = offsets[t]
-    n = offsets[t + 1] - lo
-    if n <= 1:
-        return  # the whole block returns: no barrier is left waiting
-    if n <= SORT_KEYS:
-        buf = cuda.shared.array(SORT_KEYS, numba.int64)  # the int32 sort's bytes
-        for e in range(tid, n, cuda.blockDim.x):
-            buf[e] = keys[lo + e]
-        cuda.syncthreads()
-        _bitonic_sort(buf, 0, n, tid, cuda.blockDim.x)
-        for e in range(tid, n, cuda.blockDim.x):
-            keys[lo + e] = buf[e]
-    else:
-        _bitonic_sort(keys, lo, n, tid, cuda.blockDim.x)
 
 
 @cuda.jit
@@ -280,7 +259,7 @@ def bin_cuda(rows, boxes, visible, width: int, height: int):
         cursor = _WS.get("g.cursor", (n_tiles,), np.int64)
         cursor.copy_to_device(offsets[:n_tiles])
         _fill_keys[_blocks(n), THREADS](boxes, visible, rows.view(np.int32), n_tx, cursor, keys)
-        _sort_keys[n_tiles, THREADS](offsets, keys)
+        surfel_cuda._sort_keys[n_tiles, THREADS](offsets, keys)  # (a module attribute: tests note it)
     return offsets, keys, [n_pairs, *(int(v) for v in totals.copy_to_host())]
 
 
