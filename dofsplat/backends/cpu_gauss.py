@@ -22,8 +22,7 @@ from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
 from ..gauss.composite import (TILE, bin_tiles, composite_tiles, depth_order, finish_image,
                                finish_shares, keep_best_share)
-from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
-                             F_OPACITY, N_FIELDS, intrinsics,
+from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
                              project_gaussians, view_matrix)
 from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
 from ..gaussians import Gaussians

@@ -44,6 +44,7 @@ from ..gauss.composite import (N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE, blend
 from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_OPACITY,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian, view_matrix)
 from ..colors import linear_to_srgb
+from ..gaussians import Gaussians
 from .cpu_gauss import BLURS, blur_variance, lod_cut, visibility_cameras
 from . import cuda as surfel_cuda
 from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
@@ -201,7 +202,8 @@ def _finish_shares(best):
 
 def device_gaussians(scene) -> dict:
     """The scene's arrays on the GPU: kept on a ``Gaussians`` object between frames (keyed by
-    its arrays' identity), uploaded afresh for a LOD cut."""
+    its arrays' identity), uploaded afresh for a LOD cut (a ``GaussianArrays`` made per
+    frame, which would only hold on to device memory)."""
     names = ("positions", "scales", "rotations", "opacity", "sh")
     key = tuple((getattr(scene, n).__array_interface__["data"][0], getattr(scene, n).shape)
                 for n in names)
@@ -209,10 +211,8 @@ def device_gaussians(scene) -> dict:
     if kept is not None and kept[0] == key:
         return kept[1]
     arrays = {n: _upload(np.asarray(getattr(scene, n), np.float32)) for n in names}
-    try:
-        object.__setattr__(scene, "_device", (key, arrays))
-    except AttributeError:  # a cut (GaussianArrays with slots) is not kept
-        pass
+    if isinstance(scene, Gaussians):
+        scene._device = (key, arrays)
     return arrays
 
 
