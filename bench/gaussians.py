@@ -11,14 +11,16 @@ For each shared 3DGS scene, seen by the default camera of ``dofsplat render`` (t
   ``pip install -e ".[gsplat-peer]"``), PSNR on the displayed values;
 * **depth of field**, focused on the surface at the image centre, at apertures whose largest
   circle of confusion over the frame's depths (its 2nd and 98th percentiles) is 10, 20 and
-  35 px: the default frame (``default``: the lens in 4 parts, LOD), the same without LOD
-  (``no_lod``), one pass (``one_pass``), the viewers' blur as they ship it (``viewers``:
-  PlayCanvas splat-transform's and Spark's; one pass, every Gaussian) and the pinhole
-  image, each against
-  the truth, the average of ``--samples`` pinhole frames through points of the lens
-  (``dofsplat reference``): whole-frame PSNR and the worst 2 % of 32 x 32 tiles;
-* **time**: the pinhole frame, the default frame and the others, in the same run (the
-  machine is named).
+  35 px: the default frame (``default``: the lens in 4 parts drawn in layers, LOD), the
+  parts drawn whole (``whole``: the default frame of 2026-11-28, ``cpu_gauss.LAYERS`` off),
+  the default without LOD (``no_lod``), one pass (``one_pass``), the viewers' blur as they
+  ship it (``viewers``: PlayCanvas splat-transform's and Spark's; one pass, every Gaussian)
+  and the pinhole image, each against the truth, the average of ``--samples`` pinhole
+  frames through points of the lens (``dofsplat reference``): whole-frame PSNR and the
+  worst 2 % of 32 x 32 tiles;
+* **time**: each variant once, then the pinhole, default and whole frames in turn
+  ``--repeat`` times (medians; the ratios to the pinhole frame are of the same turns, so
+  that a shared machine's load falls on all three alike; the machine is named).
 
 The figures go to ``--out`` (JSON) and a table on stdout; bench/RESULTS.md quotes them.
 """
@@ -103,7 +105,21 @@ def gsplat_image(scene, camera):
     return np.asarray(image, np.float64), None
 
 
-def run_scene(name, path, size, samples, settings):
+def whole_parts(render):
+    """``render`` with the lens's parts drawn whole (``cpu_gauss.LAYERS`` off)."""
+    from dofsplat.backends import cpu_gauss
+
+    def run(*args):
+        layers = cpu_gauss.LAYERS
+        cpu_gauss.LAYERS = dataclasses.replace(layers, enabled=False)
+        try:
+            return render(*args)
+        finally:
+            cpu_gauss.LAYERS = layers
+    return run
+
+
+def run_scene(name, path, size, samples, settings, repeat=3):
     import dofsplat as ds
     from dofsplat.io import linear_to_srgb, load
     from dofsplat.metrics import psnr
@@ -134,18 +150,33 @@ def run_scene(name, path, size, samples, settings):
         row = {"coc_px": coc, "focus": lens.focus_distance, "aperture": lens.aperture,
                "reference_s": ref_s}
         variants = {
-            "default": settings,
-            "no_lod": dataclasses.replace(settings, gaussian_lod=False),
-            "one_pass": dataclasses.replace(settings, gaussian_lens_samples=1),
+            "default": (ds.render, settings),
+            "whole": (whole_parts(ds.render), settings),
+            "no_lod": (ds.render, dataclasses.replace(settings, gaussian_lod=False)),
+            "one_pass": (ds.render, dataclasses.replace(settings, gaussian_lens_samples=1)),
             # the viewers' blur as they ship it: one pass, every Gaussian
-            "viewers": dataclasses.replace(settings, gaussian_blur="viewers",
-                                           gaussian_lens_samples=1, gaussian_lod=False),
+            "viewers": (ds.render, dataclasses.replace(settings, gaussian_blur="viewers",
+                                                       gaussian_lens_samples=1,
+                                                       gaussian_lod=False)),
         }
         frames = {}
-        for key, st in variants.items():
+        for key, (render, st) in variants.items():
             t = time.perf_counter()
-            frames[key] = ds.render(scene, camera, lens, st)
+            frames[key] = render(scene, camera, lens, st)
             row[f"{key}_s"] = time.perf_counter() - t
+        # the ratios to the pinhole frame, from turns of the three
+        turns = {"pinhole": (ds.render, None, settings), "default": (ds.render, lens, settings),
+                 "whole": (whole_parts(ds.render), lens, settings)}
+        seconds = {key: [] for key in turns}
+        for _ in range(repeat):
+            for key, (render, turn_lens, st) in turns.items():
+                t = time.perf_counter()
+                render(scene, camera, turn_lens, st)
+                seconds[key].append(time.perf_counter() - t)
+        for key in turns:
+            row[f"{key}_median_s"] = float(np.median(seconds[key]))
+        for key in ("default", "whole"):
+            row[f"{key}_x_pinhole"] = row[f"{key}_median_s"] / row["pinhole_median_s"]
         frames["pinhole"] = pinhole
         for key, frame in frames.items():
             row[key] = {"psnr": psnr(frame.image, ref.image),
@@ -153,8 +184,10 @@ def run_scene(name, path, size, samples, settings):
         out["dof"].append(row)
         print(f"  {name} CoC {coc:4.0f} px: " + "  ".join(
             f"{k} {row[k]['psnr']:.2f} ({row[k]['worst_2pct_tiles']:.2f})" for k in frames)
-            + f"  default {row['default_s']:.2f} s, no LOD {row['no_lod_s']:.2f} s, pinhole "
-              f"{out['pinhole_s']:.2f} s", flush=True)
+            + f"  default {row['default_median_s']:.2f} s = {row['default_x_pinhole']:.2f} x "
+              f"pinhole, whole {row['whole_median_s']:.2f} s = {row['whole_x_pinhole']:.2f} x, "
+              f"pinhole {row['pinhole_median_s']:.2f} s; no LOD {row['no_lod_s']:.2f} s (once)",
+            flush=True)
     return out
 
 
@@ -221,6 +254,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", default="640x480")
     parser.add_argument("--samples", type=int, default=256)
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="turns of the pinhole, default and whole frames timed (medians)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "gaussians.json")
     parser.add_argument("--convergence", action="store_true",
@@ -247,7 +282,8 @@ def main(argv=None) -> int:
         if not SCENES[name].exists():
             print(f"  {name}: not found ({SCENES[name]})")
             continue
-        results["scenes"][name] = run_scene(name, SCENES[name], size, args.samples, settings)
+        results["scenes"][name] = run_scene(name, SCENES[name], size, args.samples, settings,
+                                            args.repeat)
         if isinstance(results["scenes"][name]["pinhole_vs_gsplat_db"], float):
             print(f"  {name}: pinhole against gsplat "
                   f"{results['scenes'][name]['pinhole_vs_gsplat_db']:.2f} dB", flush=True)

@@ -402,10 +402,18 @@ def _assert_same_gaussian_frame(cpu, gpu):
     (0.3, {"gaussian_blur": "viewers"}),
     (0.3, {"gaussian_lod": False, "gaussian_lens_samples": 1, "gaussian_antialiased": True}),
 ], ids=["pinhole", "default", "viewers", "one-pass-antialiased"])
-def test_gaussian_frame_matches_cpu(aperture, settings):
+def test_gaussian_frame_matches_cpu(aperture, settings, monkeypatch):
     """A Gaussian scene's frame on both devices: the pinhole, the default frame through a
     lens (which launches every kernel of backends/cuda_gauss.py), the viewers' blur, and one
-    pass with gsplat's antialiased opacity."""
+    pass with gsplat's antialiased opacity. The GPU draws each part of the lens whole, as
+    the CPU does with its layers off (``cpu_gauss.LAYERS``; the layered frame against that
+    one: test_gaussians.py)."""
+    import dataclasses
+
+    from dofsplat.backends import cpu_gauss
+
+    monkeypatch.setattr(cpu_gauss, "LAYERS", dataclasses.replace(cpu_gauss.LAYERS,
+                                                                 enabled=False))
     scene, camera = _gaussians(), _gaussian_camera()
     lens = ds.ThinLens(focus_distance=2.5, aperture=aperture) if aperture else None
     cpu = ds.render(scene, camera, lens, ds.RenderSettings(**settings))

@@ -3,27 +3,39 @@
     project (footprint, colour, the lens's blur) -> sort by depth, bin to tiles ->
     composite front to back -> background, to linear RGB
 
-With the lens in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default,
-and ``lens_samples``; ``frame.lens_parts``) the frame is K such passes, each seen from its
-part's centroid with the residual blur, averaged.
+Through a lens with our blur (``gaussian_blur = "ours"``) the frame first takes the LOD cut
+(``lod_cut``) and what the lens sees of each Gaussian (the lens visibility). With the lens
+in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default, and
+``lens_samples``; ``frame.lens_parts``) the frame is K passes, each seen from its part's
+centroid with the residual blur, averaged; each pass is drawn in layers (``LAYERS``,
+``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution its blur
+allows, every image of the frame composited in one loop: at a 35 px blur 1.6-2.7 x the
+pinhole frame on the four large shared scenes at 320 x 240, where the parts drawn whole
+cost 4.2-12.3 x (``python bench/gaussians.py --size 320x240``, 2026-11-28, the 2-core AMD
+EPYC, shared), within -0.6 / +0.9 dB of them against the lens reference.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..jit import numba
-from ..camera import Camera
+from ..camera import Camera, effective_diameter, lens_camera
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
-from ..gauss.composite import (TILE, bin_tiles, composite_tiles, depth_order, finish_image,
-                               finish_shares, keep_best_share)
+from ..gauss.composite import (TILE, best_view_shares, bin_tiles, composite_tiles,
+                               depth_order, finish_image, finish_shares, keep_best_share)
+from ..gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_WIDTH, N_P,
+                            P_BLUR_VARIANCE, P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT,
+                            P_INV_FOCUS, P_NEAR, P_WIDTH, bin_images, combine_layers,
+                            composite_images, image_table, layer_keys, live_tiles,
+                            project_layers)
 from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
-                             project_gaussians, view_matrix)
+                             project_gaussians, project_shifted_views, view_matrix)
 from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
 from ..gaussians import Gaussians
 from ..splat.subaperture import aperture_second_moment
@@ -31,6 +43,25 @@ from ..splat.subaperture import aperture_second_moment
 NO_SHARE = np.zeros(0, np.float32)  # project_gaussians: no lens visibility
 NO_SEEN = np.zeros((0, 0), np.float32)  # composite_tiles: no visible alpha kept
 BLURS = {"ours": BLUR_OURS, "viewers": BLUR_VIEWERS}
+
+
+@dataclass(frozen=True)
+class LayerSettings:
+    """How the lens in parts is drawn (``draw_layered``) and what it sees
+    (``lens_visibility_by_shifts``). The figures are PSNR against the lens reference of the
+    donut, the guitar and playbot seen as ``bench/gaussians.py`` sees them (issue 48), at
+    640 x 480, 10 and 35 px, against references of 64 samples (2026-11-28)."""
+
+    enabled: bool = True  # False: each part drawn whole at full resolution, and lens_visibility (the frame of 2026-11-28)
+    alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
+    max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
+    sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
+    visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
+    visibility_scale: int = 4  # lens visibility: at 1/this the resolution (8 lost 1-4 dB)
+    visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
+
+
+LAYERS = LayerSettings()
 
 
 def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
@@ -42,43 +73,218 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     k = max(settings.lens_samples, settings.gaussian_lens_samples)
     parts = lens_parts(camera, lens, replace(settings, lens_samples=k))
     n_in = len(scene)
-    if settings.lod and settings.gaussian_lod and coc_coefficients(camera, lens, settings)[0] > 0.0:
+    blurred = coc_coefficients(camera, lens, settings)[0] > 0.0
+    lod = settings.lod and settings.gaussian_lod and blurred
+    layered = LAYERS.enabled and parts is not None and blur == "ours"
+    stats = {}
+    t = time.perf_counter()
+    if layered:
+        scene, layers = in_layers(scene, camera, lens, parts, settings, lod)
+    elif lod:
         scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
+    stats["select_ms"] = _ms(t)
+    t = time.perf_counter()
     share = None
-    if blur == "ours" and coc_coefficients(camera, lens, settings)[0] > 0.0:
+    if layered:
+        share = lens_visibility_by_shifts(scene, camera, lens, settings)
+    elif blur == "ours" and blurred:
         share = lens_visibility(scene, camera, lens, settings)
-    if parts is None:
-        color, trans, depth, stats = draw_gaussians(scene, camera, lens, settings, blur, share)
+    stats["visibility_ms"] = _ms(t)
+    if layered:
+        image, depth, drawn = draw_layered(scene, layers, camera, lens, parts, settings, share)
     else:
-        color = np.zeros((camera.height, camera.width, 3), np.float64)
-        trans = np.zeros((camera.height, camera.width), np.float64)
-        depth = np.full((camera.height, camera.width), np.inf, np.float32)
-        stats = {"splats_rendered": 0, "fragments": 0}
-        for cam in parts.cameras:
-            c, t, d, s = draw_gaussians(scene, cam, parts.residual, settings, blur, share)
-            color += c
-            trans += t
-            np.minimum(depth, d, out=depth)
-            for key in stats:
-                stats[key] += s[key]
-    image = to_linear_rgba(color, trans, settings.background,
-                           1.0 if parts is None else 1.0 / len(parts.cameras))
+        color, trans, depth, drawn = draw_passes(scene, camera, lens, parts, settings, blur,
+                                                 share)
+        image = to_linear_rgba(color, trans, settings.background,
+                               1.0 if parts is None else 1.0 / len(parts.cameras))
+    stats.update(drawn)
     stats.update(points_in=n_in, width=camera.width, height=camera.height,
                  total_ms=(time.perf_counter() - t0) * 1000.0)
     alpha = image[..., 3].copy()
     return RenderResult(image=image, depth=depth, weight=alpha, stats=stats)
 
 
+def draw_passes(scene, camera: Camera, lens, parts, settings: RenderSettings, blur: str,
+                share):
+    """One pass (parts None), or each part drawn whole at full resolution and summed: (color
+    (H, W, 3), transmittance (H, W), depth (H, W), stats)."""
+    if parts is None:
+        return draw_gaussians(scene, camera, lens, settings, blur, share)
+    color = np.zeros((camera.height, camera.width, 3), np.float64)
+    trans = np.zeros((camera.height, camera.width), np.float64)
+    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+    stats = {"splats_rendered": 0, "fragments": 0}
+    for cam in parts.cameras:
+        c, t, d, s = draw_gaussians(scene, cam, parts.residual, settings, blur, share)
+        color += c
+        trans += t
+        np.minimum(depth, d, out=depth)
+        for key in stats:
+            stats[key] += s[key]
+    return color, trans, depth, stats
+
+
 def lod_cut(scene: Gaussians, camera: Camera, lens, settings: RenderSettings) -> GaussianArrays:
     """The scene's LOD cut for this frame (``gauss/lod.py``): coarser Gaussians where the
     lens (a part's residual, with the lens in parts) blurs more than they are wide. The
     cut depends on depth alone, so one serves every part of the lens."""
+    tree, rows = lod_rows(scene, camera, lens, settings)
+    return cut_arrays(tree, rows)
+
+
+def lod_rows(scene: Gaussians, camera: Camera, lens, settings: RenderSettings):
+    """(tree, rows (M,)): ``lod_cut``'s tree and the rows of it drawn."""
     tree = tree_for(scene)
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     rows = select_cut(tree, view_matrix(camera), intrinsics(camera)[0], camera.near if
                       camera.frustum is None else camera.frustum[4], coc_k, inv_focus,
                       blur_variance(lens), settings.lod_blur_fraction)
-    return cut_arrays(tree, rows)
+    return tree, rows
+
+
+# -- the lens in layers (gauss/layers.py) -------------------------------------------------
+
+@dataclass
+class Layers:
+    """A frame's Gaussians by layer (``layer_order``)."""
+
+    order: np.ndarray  # (N,) int64: the frame's Gaussians in memory order
+    spans: np.ndarray  # (L, 2) int64: layer j (front to back) is memory rows spans[j, 0] .. spans[j, 1]
+    scales: np.ndarray  # (L,) int64: layer j is drawn at 1/scales[j] the resolution
+    sharp: int  # the sharp slab's layer (drawn once, from the lens centre): first in memory
+
+
+def in_layers(scene: Gaussians, camera: Camera, lens, parts, settings: RenderSettings,
+              lod: bool):
+    """(arrays, layers): the frame's Gaussians (the LOD cut, chosen by the parts' residual
+    blur, where lod; else the scene) gathered once in ``layer_order``'s order."""
+    if lod:
+        tree, rows = lod_rows(scene, camera, parts.residual, settings)
+        layers = layer_order(tree.positions[rows], camera, lens, parts)
+        return cut_arrays(tree, rows[layers.order]), layers
+    layers = layer_order(scene.positions, camera, lens, parts)
+    o = layers.order
+    return GaussianArrays(positions=scene.positions[o], scales=scene.scales[o],
+                          rotations=scene.rotations[o], opacity=scene.opacity[o],
+                          sh=scene.sh[o], level=np.zeros(len(o), np.int8)), layers
+
+
+def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
+    """The Gaussians by layer (``gauss.layers.layer_keys``, from their depths from the lens
+    centre: every part's are the same, a part's camera moving within the lens plane), in
+    memory: the sharp slab first, then the other layers front to back, nearest first within
+    each, so that a part projects one run of rows and each of its layers is a run of that."""
+    view = view_matrix(camera)
+    z = np.asarray(positions, np.float64) @ view[2, :3] + view[2, 3]
+    coc_k, inv_focus = lens.coc_coefficients(camera)
+    with np.errstate(divide="ignore"):
+        coc = coc_k * np.abs(1.0 / z - inv_focus)
+    key, scales = layer_keys(z, coc, inv_focus, parts.rho * math.sqrt(blur_variance(lens)),
+                             LAYERS.sharp_coc, LAYERS.alpha, LAYERS.max_level)
+    sharp = LAYERS.max_level + 1
+    # the keys grow with depth: sorted nearest first they run in order, and moving the
+    # sharp slab to the front keeps every layer a run
+    by_depth = np.argsort(z, kind="stable")
+    in_sharp = key[by_depth] == sharp
+    order = np.concatenate([by_depth[in_sharp], by_depth[~in_sharp]])
+    counts = np.bincount(key, minlength=len(scales))
+    spans = np.zeros((len(scales), 2), np.int64)
+    start = spans[sharp, 1] = counts[sharp]
+    for j in range(len(scales)):
+        if j != sharp:
+            spans[j] = start, start + counts[j]
+            start += counts[j]
+    return Layers(order=order, spans=spans, scales=scales, sharp=sharp)
+
+
+def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, parts,
+                 settings: RenderSettings, share=None):
+    """The lens in parts, each drawn in layers (``gauss/layers.py``): (image (H, W, 4) linear
+    RGBA, depth (H, W), stats). The sharp slab is projected once, from the lens centre with
+    the whole lens's blur; the other layers from each part's camera with the residual blur,
+    then moved onto their layer's image (``project_layers``, one loop); every image is
+    composited in one loop (``composite_images``); each part's layers are joined per pixel
+    and the parts averaged (``combine_layers``). share: the lens visibility, or None."""
+    stats = {}
+    t = time.perf_counter()
+    h, w = camera.height, camera.width
+    n = len(scene)
+    n_sharp = int(layers.spans[layers.sharp, 1])
+    n_rest = n - n_sharp
+    k = len(parts.cameras)
+    # the projections: (camera, lens, first Gaussian, last, first row)
+    jobs = [(camera, lens, 0, n_sharp, 0)] + [
+        (cam, parts.residual, n_sharp, n, n_sharp + p * n_rest)
+        for p, cam in enumerate(parts.cameras)]
+    cameras = np.zeros((len(jobs), N_P))
+    for j, (cam, jlens, *_) in enumerate(jobs):
+        cameras[j, [P_FX, P_FY, P_CX, P_CY]] = intrinsics(cam)
+        cameras[j, [P_WIDTH, P_HEIGHT]] = cam.width, cam.height
+        cameras[j, P_NEAR] = cam.near if cam.frustum is None else cam.frustum[4]
+        cameras[j, [P_COC_K, P_INV_FOCUS]] = coc_coefficients(cam, jlens, settings)
+        cameras[j, P_BLUR_VARIANCE] = blur_variance(jlens)
+    # the images: the sharp slab, then each part's other layers (a coarse one with a pixel
+    # of margin, so that bilinear sampling never leaves it); each part's list front to back
+    images = [] if n_sharp == 0 else [(w, h, 1, 0, 0, n_sharp)]
+    part_layers = np.full((k, len(layers.scales)), -1, np.int64)
+    for p in range(k):
+        col = 0
+        for j, scale in enumerate(layers.scales):
+            a, b = layers.spans[j]
+            if b == a:
+                continue
+            if j == layers.sharp:
+                part_layers[p, col] = 0
+            else:
+                margin = 0 if scale == 1 else 1
+                r0 = a + p * n_rest
+                images.append((-(-w // scale) + 2 * margin, -(-h // scale) + 2 * margin, scale,
+                               margin, r0, r0 + b - a))
+                part_layers[p, col] = len(images) - 1
+            col += 1
+    if not images:  # nothing in front of the camera
+        empty = np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32)
+        return (to_linear_rgba(*empty, settings.background), np.full((h, w), np.inf, np.float32),
+                {"splats_rendered": 0, "fragments": 0, "layers": 0})
+    table = image_table(images)
+    n_rows = n_sharp + k * n_rest
+    row_image = np.repeat(np.arange(len(images), dtype=np.int32),
+                          table[:, IM_ROW1] - table[:, IM_ROW0])
+    rows = np.empty((n_rows, N_FIELDS), np.float32)
+    boxes = np.zeros((n_rows, 4), np.int32)
+    visible = np.zeros(n_rows, np.bool_)
+    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
+                   NO_SHARE if share is None else share,
+                   np.stack([view_matrix(job[0]) for job in jobs]),
+                   np.array([job[0].eye for job in jobs], np.float64), cameras,
+                   np.array([job[2:] for job in jobs], np.int64), settings.gaussian_antialiased,
+                   table, row_image, rows, boxes, visible)
+    stats["project_ms"] = _ms(t)
+    t = time.perf_counter()
+    offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
+                                          visible)
+    stats["sort_ms"] = _ms(t)
+    t = time.perf_counter()
+    n_px = int(table[-1, IM_PIXEL0] + table[-1, IM_WIDTH] * table[-1, IM_HEIGHT])
+    color = np.empty((n_px, 3), np.float32)
+    trans = np.empty(n_px, np.float32)
+    depth = np.empty(n_px, np.float32)
+    composite_images(rows, boxes, offsets, ids, tile_image, table, color, trans, depth,
+                     NO_SEEN)
+    stats["composite_ms"] = _ms(t)
+    t = time.perf_counter()
+    out_depth = np.empty((h, w), np.float32)
+    image = np.empty((h, w, 4), np.float32)
+    combine_layers(table, live_tiles(offsets, table, tile_image), part_layers, color, trans,
+                   depth, linear_to_srgb(np.asarray(settings.background, np.float64)),
+                   np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
+                   image)
+    stats["combine_ms"] = _ms(t)
+    stats["splats_rendered"] = int(np.count_nonzero(visible))
+    box = boxes[visible].astype(np.int64)
+    stats["fragments"] = int(np.sum((box[:, 1] - box[:, 0]) * (box[:, 3] - box[:, 2])))
+    stats["layers"] = len(images)
+    return image, out_depth, stats
 
 
 def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
@@ -174,11 +380,68 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
     return best
 
 
+def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSettings,
+                              views: int | None = None, scale: int | None = None) -> np.ndarray:
+    """(N,) float32 in [0, 1]: ``lens_visibility``'s shares, from one projection (views,
+    scale: ``LAYERS.visibility_views`` and ``visibility_scale`` where None). The views from
+    the lens's rim differ from the centre's by a shear (``lens_camera``: a point at depth z
+    moves by the rim's K (1/P - 1/z) (cos a, -sin a) pixels), so the centre's pinhole
+    footprints (with ``LAYERS.visibility_eps2d`` for the low-pass) are projected once, over
+    the image and a margin of the largest such move (at most half the image), sorted once
+    (the depths are every view's), and each view's are those footprints moved
+    (``project_shifted_views``: the mean exactly, the shape as the centre sees it); all the
+    views' tiles are composited in one loop. Against ``lens_visibility`` from the same views
+    the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px)."""
+    views = LAYERS.visibility_views if views is None else views
+    scale = LAYERS.visibility_scale if scale is None else scale
+    small = replace(camera, width=max(1, camera.width // scale),
+                    height=max(1, camera.height // scale))
+    w, h = small.width, small.height
+    n = len(scene)
+    fx, fy, cx, cy = intrinsics(small)
+    coc_k, inv_focus = coc_coefficients(small, lens, settings)
+    near = small.near if small.frustum is None else small.frustum[4]
+    view = view_matrix(small)
+    z = np.asarray(scene.positions, np.float64) @ view[2, :3] + view[2, 3]
+    front = z[z > near]
+    reach = coc_k * float(np.max(np.abs(1.0 / front - inv_focus))) if len(front) else 0.0
+    margin = int(math.ceil(min(reach, 0.5 * max(w, h))))
+    radius = 0.5 * effective_diameter(small, lens)
+    angles = 2.0 * math.pi * np.arange(views) / max(views, 1)
+    shifts = np.zeros((views + 1, 2))  # the centre, then the rim
+    shifts[1:, 0] = fx * radius * np.cos(angles)
+    shifts[1:, 1] = -fy * radius * np.sin(angles)
+    m = len(shifts)
+    rows = np.empty((n, N_FIELDS), np.float32)
+    boxes = np.zeros((n, 4), np.int32)
+    visible = np.zeros(n, np.bool_)
+    view_rows = np.empty((m * n, N_FIELDS), np.float32)
+    view_boxes = np.zeros((m * n, 4), np.int32)
+    view_visible = np.zeros(m * n, np.bool_)
+    # (no colour is needed: the SH's constant term alone is the cheapest)
+    project_shifted_views(scene.positions, scene.scales, scene.rotations, scene.opacity,
+                          scene.sh[:, :1], view, np.asarray(small.eye, np.float64), fx, fy,
+                          cx + margin, cy + margin, w + 2 * margin, h + 2 * margin, near, 1e10,
+                          LAYERS.visibility_eps2d, settings.gaussian_antialiased, margin,
+                          shifts, inv_focus, rows, boxes, visible, view_rows, view_boxes,
+                          view_visible)
+    order = depth_order(rows, visible).astype(np.int32)
+    table = image_table([(w, h, 1, 0, v * len(order), (v + 1) * len(order)) for v in range(m)])
+    view_order = (np.arange(m, dtype=np.int32)[:, None] * n + order[None, :]).ravel()
+    offsets, ids, tile_image = bin_images(table, view_order, view_boxes, view_visible)
+    n_px = m * w * h
+    seen = np.zeros((numba.get_num_threads() + 1, m * n), np.float32)
+    composite_images(view_rows, view_boxes, offsets, ids, tile_image, table,
+                     np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
+                     np.empty(n_px, np.float32), seen)
+    best = np.empty(n, np.float32)
+    best_view_shares(view_rows, view_visible, seen, n, best)
+    return best
+
+
 def visibility_cameras(camera: Camera, lens, views: int = 6, scale: int = 2) -> list[Camera]:
     """The pinhole views of ``lens_visibility``: from the lens centre and ``views`` points on
     its rim, at 1/scale the resolution, focused where the lens is."""
-    from ..camera import effective_diameter, lens_camera
-
     small = replace(camera, width=max(1, camera.width // scale),
                     height=max(1, camera.height // scale))
     radius = 0.5 * effective_diameter(camera, lens)
@@ -189,7 +452,7 @@ def visibility_cameras(camera: Camera, lens, views: int = 6, scale: int = 2) -> 
 
 # -- helpers -----------------------------------------------------------------------------
 
-COMPILE_SECONDS = 25  # the Gaussian kernels' cold compile on 2 cores (22 s, a loaded machine)
+COMPILE_SECONDS = 40  # the Gaussian kernels' cold compile on 2 cores (38 s on a loaded machine; the parts drawn whole alone: 11 s)
 
 
 def kernels_compiled() -> bool:
@@ -197,17 +460,21 @@ def kernels_compiled() -> bool:
     on a first run, when ``warm_up`` compiles them: about COMPILE_SECONDS)."""
     from .cpu import kernel_cached
 
-    return kernel_cached(project_gaussians) and kernel_cached(composite_tiles)
+    return all(kernel_cached(kernel) for kernel in (project_gaussians, composite_tiles,
+                                                    project_layers, composite_images,
+                                                    combine_layers))
 
 
 def warm_up() -> None:
-    """Compile (or load) the Gaussian kernels: a frame of two Gaussians through a lens."""
+    """Compile (or load) the Gaussian kernels: frames of two Gaussians, a pinhole, through a
+    lens (the lens in layers) and in one pass (``lens_visibility``)."""
+    from ..camera import ThinLens
+
     scene = Gaussians(positions=[[0, 0, 0], [0.1, 0, 0]], scales=[[0.1] * 3] * 2,
                       rotations=[[1, 0, 0, 0]] * 2, opacity=[0.5, 0.5],
                       sh=np.zeros((2, 1, 3), np.float32))
     camera = Camera(eye=(0, 0, 1), target=(0, 0, 0), width=8, height=8)
-    from ..camera import ThinLens
-
-    render_gaussians_cpu(scene, camera, ThinLens(focus_distance=0.5, aperture=0.1),
-                         RenderSettings())
-
+    lens = ThinLens(focus_distance=0.5, aperture=0.1)
+    render_gaussians_cpu(scene, camera, None, RenderSettings())
+    render_gaussians_cpu(scene, camera, lens, RenderSettings())
+    render_gaussians_cpu(scene, camera, lens, RenderSettings(gaussian_lens_samples=1))

@@ -26,6 +26,10 @@ What is written here is only the parallel structure around them:
 The LOD cut is the CPU's (``cpu_gauss.lod_cut``, a numba walk of the tree): the cut is
 uploaded each frame. The scene's own arrays are uploaded once and kept on the ``Gaussians``
 object, like the surfels' (make a new ``Gaussians`` rather than editing its arrays).
+
+Through a lens the GPU draws each part of the lens whole: the CPU's frame with its layers
+off (``cpu_gauss.LAYERS``, ``gauss/layers.py``: not ported yet), 59-184 ms at 1920 x 1080 on
+an H200 (bench/RESULTS.md); the layered CPU frame is within a dB of it.
 """
 
 from __future__ import annotations
@@ -307,7 +311,8 @@ def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, s
 
 
 def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
-    """``cpu_gauss.render_gaussians_cpu`` on the GPU: the same frame up to float rounding."""
+    """``cpu_gauss.render_gaussians_cpu`` with ``LAYERS`` off, on the GPU: the same frame up
+    to float rounding."""
     warm_up()
     t0 = time.perf_counter()
     clock = _Clock()

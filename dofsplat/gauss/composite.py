@@ -29,6 +29,8 @@ from .project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_G, F_OPACITY, F_R
 TILE = 16
 MIN_TRANSMITTANCE = 1e-4  # a pixel stops before its transmittance falls to this
 MEDIAN_TRANSMITTANCE = 0.5  # the depth output: where T falls to this
+SPAN_SLACK = 0.01  # px: a row's chord of a footprint is walked this much wider (float32 rows)
+SPAN_MIN = 8  # px: a footprint's rows in a tile are walked along its chord where wider than this
 SHARE_SEEN = 0.05  # lens visibility: a Gaussian seen this much (a share of its footprint) counts as seen
 
 
@@ -117,12 +119,7 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
     background: that is background x transmittance), transmittance (H, W) float32 and
     depth (H, W) float32. seen: (threads, N) float32 to add each Gaussian's visible alpha
     (sum over pixels of alpha T) into, a row per thread (``numba.get_thread_id``), or (0, 0)
-    to skip it.
-
-    Gaussian by Gaussian, over the pixels of its box within the tile only (a tile's list
-    holds many Gaussians that reach a few of its pixels); each pixel's blend is the one of
-    the module docstring, in the same order, so the result is the pixel-by-pixel walk's
-    (the CUDA backend's, a thread per pixel, with the same ``gaussian_alpha`` and ``blend``)."""
+    to skip it. Each tile is ``blend_tile``'s."""
     n_tiles = offsets.shape[0] - 1
     track = seen.shape[0] > 0
     for t in numba.prange(n_tiles):
@@ -132,33 +129,10 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
         tx1 = min(tx0 + TILE, width)
         ty1 = min(ty0 + TILE, height)
         tw = tx1 - tx0
-        n_px = tw * (ty1 - ty0)
-        state = np.empty((n_px, N_STATE), np.float64)
-        for p in range(n_px):
-            start_pixel(state, p)
-        done = np.zeros(n_px, np.bool_)
-        n_done = 0
-        for k in range(offsets[t], offsets[t + 1]):
-            if n_done == n_px:
-                break
-            g = ids[k]
-            mx, my = rows[g, F_X], rows[g, F_Y]
-            ca, cb, cc = rows[g, F_CA], rows[g, F_CB], rows[g, F_CC]
-            opacity, cut = rows[g, F_OPACITY], rows[g, F_CUT]
-            for py in range(max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)):
-                for px in range(max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)):
-                    p = (py - ty0) * tw + (px - tx0)
-                    if done[p]:
-                        continue
-                    alpha = gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py)
-                    if alpha == 0.0:
-                        continue
-                    w = blend(state, p, alpha, rows, g)
-                    if w < 0.0:
-                        done[p] = True
-                        n_done += 1
-                    elif track:
-                        seen[tid, g] += w
+        state = np.empty((tw * (ty1 - ty0), N_STATE), np.float64)
+        done = np.empty(tw * (ty1 - ty0), np.bool_)
+        blend_tile(rows, boxes, ids, offsets[t], offsets[t + 1], tx0, ty0, tx1, ty1, state,
+                   done, seen, tid)
         for py in range(ty0, ty1):
             for px in range(tx0, tx1):
                 p = (py - ty0) * tw + (px - tx0)
@@ -167,6 +141,64 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
                 color[py, px, 2] = state[p, S_B]
                 transmittance[py, px] = state[p, S_T]
                 depth[py, px] = state[p, S_DEPTH]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, tid):
+    """One tile's pixels [tx0, tx1) x [ty0, ty1) blended front to back from its list
+    ids[k0:k1] into state (a row per pixel, row by row; ``start_pixel`` first), done a flag
+    per pixel; seen: ``composite_tiles``'s (thread tid's row), or (0, 0).
+
+    Gaussian by Gaussian, over the pixels of its box within the tile only (a tile's list
+    holds many Gaussians that reach a few of its pixels); each pixel's blend is the one of
+    the module docstring, in the same order, so the result is the pixel-by-pixel walk's
+    (the CUDA backend's, a thread per pixel, with the same ``gaussian_alpha`` and ``blend``)."""
+    track = seen.shape[0] > 0
+    tw = tx1 - tx0
+    n_px = tw * (ty1 - ty0)
+    for p in range(n_px):
+        start_pixel(state, p)
+        done[p] = False
+    n_done = 0
+    for k in range(k0, k1):
+        if n_done == n_px:
+            break
+        g = ids[k]
+        mx, my = rows[g, F_X], rows[g, F_Y]
+        ca, cb, cc = rows[g, F_CA], rows[g, F_CB], rows[g, F_CC]
+        opacity, cut = rows[g, F_OPACITY], rows[g, F_CUT]
+        # alpha reaches the cut where 2 s = a dx^2 + 2 b dx dy + c dy^2 <= 2 ln(o / cut): on
+        # each row an interval of dx (the ellipse's chord), found with a margin, so that
+        # gaussian_alpha decides every pixel it might reach and the rest are not visited
+        # (where the box's row in the tile is wider than SPAN_MIN: a narrow one is walked)
+        bx0, bx1 = max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)
+        chords = bx1 - bx0 > SPAN_MIN
+        reach2 = 2.0 * math.log(max(opacity / cut, 1.0)) if chords else 0.0
+        for py in range(max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)):
+            px0, px1 = bx0, bx1
+            if chords:
+                dy = my - (py + 0.5)
+                disc = (cb * dy) ** 2 - ca * (cc * dy * dy - reach2)
+                if disc < 0.0:
+                    continue
+                root = math.sqrt(disc)
+                # dx = mx - (px + 0.5) within [(-b dy - root) / a, (-b dy + root) / a]
+                px0 = max(bx0, int(math.ceil(mx - 0.5 - (-cb * dy + root) / ca - SPAN_SLACK)))
+                px1 = min(bx1, int(math.floor(mx - 0.5 - (-cb * dy - root) / ca
+                                              + SPAN_SLACK)) + 1)
+            for px in range(px0, px1):
+                p = (py - ty0) * tw + (px - tx0)
+                if done[p]:
+                    continue
+                alpha = gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py)
+                if alpha == 0.0:
+                    continue
+                w = blend(state, p, alpha, rows, g)
+                if w < 0.0:
+                    done[p] = True
+                    n_done += 1
+                elif track:
+                    seen[tid, g] += w
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -193,6 +225,25 @@ def keep_best_share(rows, visible, seen, best):
     for i in numba.prange(visible.shape[0]):
         if visible[i]:
             best[i] = max(best[i], seen_share(rows, i, float(seen[i])))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def best_view_shares(rows, visible, seen, n, best):
+    """best[i] = ``lens_share`` of the largest ``seen_share`` of Gaussian i over V views
+    whose rows are stacked (view v's row of it at v n + i; rows (V n, N_FIELDS), visible
+    (V n,); seen (threads, V n), summed here): ``keep_best_share`` over the views, then
+    ``finish_shares``."""
+    n_views = rows.shape[0] // max(n, 1)
+    for i in numba.prange(n):
+        share = 0.0
+        for v in range(n_views):
+            r = v * n + i
+            if visible[r]:
+                total = 0.0
+                for t in range(seen.shape[0]):
+                    total += seen[t, r]
+                share = max(share, seen_share(rows, r, total))
+        best[i] = lens_share(share)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -194,3 +194,84 @@ def project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos,
     rows[i, F_CUT] = cut
     rows[i, F_COC] = coc
     visible[i] = True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def move_footprint(i, j, rows, visible, out_rows, out_boxes, out_visible, shift_x, shift_y,
+                   inv_focus, scale, margin, width, height):
+    """Row i's footprint (``rows``, ``visible``) carried onto another image as row j of
+    ``out_rows``, ``out_boxes``, ``out_visible`` (the same arrays and i == j move it in place):
+
+        mean' = (mean + (shift_x, shift_y) (1/P - 1/z)) / scale + margin,
+        cov2d' = cov2d / scale^2
+
+    The shift is the view from another point of the lens (``camera.lens_camera``: a point at
+    depth z moves by K (1/P - 1/z) (u_x, -u_y) pixels; inv_focus = 1/P), exact for the mean;
+    the footprint's shape stays the projection's (the other view's Jacobian differs at second
+    order). scale and margin put it on an image of 1/scale the resolution whose pixel
+    (margin, margin) is the first of the image's own: the low-pass and the lens's blur, in
+    the projection's pixels, are kept. The box is the projection's rule (the pixels where
+    alpha can reach the row's cut), clipped to width x height."""
+    if not visible[i]:
+        out_visible[j] = False
+        return
+    mx = rows[i, F_X]
+    my = rows[i, F_Y]
+    z = rows[i, F_DEPTH]
+    ca, cb, cc = rows[i, F_CA], rows[i, F_CB], rows[i, F_CC]
+    # the covariance, from the conic, in the new image's pixels
+    det_conic = ca * cc - cb * cb
+    s2 = scale * scale
+    cov_xx = cc / det_conic / s2
+    cov_xy = -cb / det_conic / s2
+    cov_yy = ca / det_conic / s2
+    det = cov_xx * cov_yy - cov_xy * cov_xy
+    parallax = inv_focus - 1.0 / z
+    mx = (mx + shift_x * parallax) / scale + margin
+    my = (my + shift_y * parallax) / scale + margin
+    reach = 2.0 * math.log(rows[i, F_OPACITY] / rows[i, F_CUT])
+    ex = math.sqrt(reach * cov_xx) + BOX_SLACK
+    ey = math.sqrt(reach * cov_yy) + BOX_SLACK
+    x0 = max(math.ceil(mx - ex - 0.5), 0.0)
+    x1 = min(math.floor(mx + ex - 0.5) + 1.0, float(width))
+    y0 = max(math.ceil(my - ey - 0.5), 0.0)
+    y1 = min(math.floor(my + ey - 0.5) + 1.0, float(height))
+    if x0 >= x1 or y0 >= y1:
+        out_visible[j] = False
+        return
+    for f in range(N_FIELDS):
+        out_rows[j, f] = rows[i, f]
+    out_rows[j, F_X] = mx
+    out_rows[j, F_Y] = my
+    out_rows[j, F_CA] = cov_yy / det
+    out_rows[j, F_CB] = -cov_xy / det
+    out_rows[j, F_CC] = cov_xx / det
+    out_rows[j, F_COC] = rows[i, F_COC] / scale
+    out_boxes[j, 0], out_boxes[j, 1] = int(x0), int(x1)
+    out_boxes[j, 2], out_boxes[j, 3] = int(y0), int(y1)
+    out_visible[j] = True
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def project_shifted_views(positions, scales, rotations, opacity, sh, view, campos, fx, fy, cx,
+                          cy, width, height, near, far, eps2d, antialiased, margin, shifts,
+                          inv_focus, rows, boxes, visible, view_rows, view_boxes, view_visible):
+    """Pinhole footprints seen from V points of the lens, from one projection: each
+    Gaussian's ``project_gaussian`` (no blur) into rows, boxes, visible (an image of width x
+    height whose margin pixels on each side lie outside the views: what moves into them is
+    kept), then ``move_footprint``'d into view_rows (V N, N_FIELDS), view_boxes (V N, 4),
+    view_visible (V N,): view v's row of Gaussian i is v N + i, on an image of (width - 2
+    margin) x (height - 2 margin). shifts: (V, 2) each view's (shift_x, shift_y), pixels at
+    1/P - 1/z = 1; inv_focus = 1/P."""
+    n = positions.shape[0]
+    no_share = np.zeros(0, np.float32)
+    out_w = width - 2 * margin
+    out_h = height - 2 * margin
+    for i in numba.prange(n):
+        project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy,
+                         cx, cy, width, height, near, far, eps2d, antialiased, BLUR_NONE, 0.0,
+                         0.0, 0.0, no_share, rows, boxes, visible)
+        for v in range(shifts.shape[0]):
+            move_footprint(i, v * n + i, rows, visible, view_rows, view_boxes, view_visible,
+                           shifts[v, 0], shifts[v, 1], inv_focus, 1.0, -float(margin), out_w,
+                           out_h)
