@@ -7,7 +7,7 @@ Two kinds of file live under one folder (``$XDG_CACHE_HOME/dofsplat`` or
   normalisation of a point cloud, sampling of a mesh: seconds to minutes), keyed by the
   file's content, the loader's options and the preparation code itself (``io.load``);
 * ``lod/``: LOD hierarchies, keyed by the surfel arrays they were built from
-  (``lod.cache``).
+  (``lod.cache``), and Gaussian scenes' trees, ``gaussians-*.npz`` (``gauss.lod``).
 
 The whole cache is held under ``max_bytes()`` (2 GiB unless ``DOFSPLAT_CACHE_MAX`` says
 otherwise, e.g. ``500M`` or ``10G``; ``0`` turns the cache off): after each file written,

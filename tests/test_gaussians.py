@@ -457,3 +457,104 @@ def test_the_compile_notice_names_the_gaussian_kernels(tmp_path):
     first = result.stderr.splitlines()[0]
     assert first.startswith("dofsplat: compiling the Gaussian rendering kernels, once "
                             f"(about {COMPILE_SECONDS} s"), first
+
+
+@pytest.fixture
+def tree_cache(tmp_path, monkeypatch):
+    """A private cache that keeps every Gaussian tree, however fast its build; and a count
+    of the trees built (``builds``)."""
+    from dofsplat import cache
+    from dofsplat.gauss import lod
+
+    monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "1G")
+    monkeypatch.setattr(lod, "CACHE_SECONDS", 0.0)
+    builds = []
+    build = lod.build_tree
+    monkeypatch.setattr(lod, "build_tree", lambda g: builds.append(len(g)) or build(g))
+    return cache.cache_folder("lod"), builds
+
+
+def assert_same_tree(a, b):
+    from dofsplat.gauss.lod import TREE_ARRAYS
+
+    assert a.fingerprint == b.fingerprint
+    for name in TREE_ARRAYS:
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+def test_a_saved_gaussian_tree_loads_as_built(tmp_path):
+    """save then load gives the built tree array for array, bit for bit (float32 stored as
+    float32), and leaves no temporary file beside it (written under another name, renamed)."""
+    from dofsplat.gauss.lod import GaussianTree, build_tree
+
+    g = scene(n=333, seed=4, degree=2)
+    tree = build_tree(g)
+    path = tree.save(tmp_path / "t.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["t.npz"]
+    back = GaussianTree.load(path, scene(n=333, seed=4, degree=2))  # a copy, hashed afresh
+    assert back is not None and back.n_levels == tree.n_levels == 10
+    assert_same_tree(back, tree)
+
+
+def test_a_second_tree_for_reads_the_cache(tree_cache, monkeypatch):
+    """tree_for on a fresh copy of a scene reads the tree the first call saved instead of
+    building it; with the cache off (DOFSPLAT_CACHE_MAX=0), or a build under CACHE_SECONDS,
+    nothing is written and every copy builds."""
+    from dofsplat.gauss import lod
+
+    folder, builds = tree_cache
+    first = lod.tree_for(scene(n=200, seed=3))
+    (entry,) = folder.iterdir()
+    assert entry.name == f"gaussians-{first.fingerprint}.npz" and builds == [200]
+    second = lod.tree_for(scene(n=200, seed=3))
+    assert builds == [200]  # read, not built
+    assert_same_tree(second, first)
+    monkeypatch.setattr(lod, "CACHE_SECONDS", 1e9)
+    lod.tree_for(scene(n=50, seed=3))
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "0")
+    lod.tree_for(scene(n=200, seed=3))
+    assert builds == [200, 50, 200] and list(folder.iterdir()) == [entry]
+
+
+def test_an_edited_scene_is_not_served_the_stale_tree(tree_cache):
+    """One opacity changed: the scene's fingerprint changes, the old file is stale (load
+    returns None), and tree_for builds the edited scene's own tree (saved beside the old)."""
+    from dofsplat.gauss import lod
+
+    folder, builds = tree_cache
+    g = scene(n=200, seed=5)
+    old = lod.tree_for(g)
+    opacity = g.opacity.copy()
+    opacity[17] = 0.05
+    edited = dataclasses.replace(g, opacity=opacity)
+    assert lod.GaussianTree.load(folder / f"gaussians-{old.fingerprint}.npz", edited) is None
+    new = lod.tree_for(edited)
+    assert builds == [200, 200] and new.fingerprint != old.fingerprint
+    assert 0.05 in new.opacity[:200] and 0.05 not in old.opacity[:200]
+    assert_same_tree(new, lod.build_tree(edited))
+    assert len(list(folder.iterdir())) == 2
+
+
+def test_a_damaged_cached_tree_is_rebuilt(tree_cache, tmp_path):
+    """A cut file, or a readable one whose arrays do not fit the scene, is a DofsplatError
+    to load; tree_for deletes it, builds, and saves a good one in its place."""
+    from dofsplat.errors import DofsplatError
+    from dofsplat.gauss import lod
+
+    folder, builds = tree_cache
+    tree = lod.tree_for(scene(n=200, seed=6))
+    (entry,) = folder.iterdir()
+    entry.write_bytes(entry.read_bytes()[: entry.stat().st_size // 2])
+    with pytest.raises(DofsplatError, match="not a dofsplat Gaussian LOD file"):
+        lod.GaussianTree.load(entry, scene(n=200, seed=6))
+    again = lod.tree_for(scene(n=200, seed=6))
+    assert builds == [200, 200]
+    assert_same_tree(again, tree)
+    assert_same_tree(lod.GaussianTree.load(entry, scene(n=200, seed=6)), tree)
+    short = dataclasses.replace(tree, sh=tree.sh[:-1])  # a row missing, the fingerprint right
+    short.save(tmp_path / "short.npz")
+    with pytest.raises(DofsplatError, match="do not match the scene's 200 Gaussians"):
+        lod.GaussianTree.load(tmp_path / "short.npz", scene(n=200, seed=6))
