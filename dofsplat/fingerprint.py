@@ -54,3 +54,14 @@ def content_hash(model, fields: tuple[str, ...] | None = None, salt: str = "", *
     if state is not None:  # (through __dict__: a frozen dataclass keeps it too)
         state[_KEPT] = {**kept, (names, salt): (values, digest)}
     return digest
+
+
+def remember_hash(model, fields: tuple[str, ...] | None, salt: str, digest: str) -> None:
+    """Keep ``digest`` as ``content_hash(model, fields, salt)`` for the model's present
+    field values, as a computed hash is kept (``cached=True`` returns it while the fields
+    are the same objects): for a model whose hash is known without reading it, a stored
+    model's (``io.model_file``), whose arrays are memory maps of a file larger than memory."""
+    names = tuple(f.name for f in dataclasses.fields(model)) if fields is None else tuple(fields)
+    values = tuple(getattr(model, name) for name in names)
+    kept = model.__dict__.get(_KEPT, {})
+    model.__dict__[_KEPT] = {**kept, (names, salt): (values, digest)}

@@ -45,6 +45,9 @@ class Material:
             raise DofsplatError(f"material shininess must be > 0, got {self.shininess}")
 
 
+VIEW_SAMPLE = 20_000  # the default camera's sample of a model (cli.framing.visibility_sample)
+
+
 @dataclass
 class Surfels:
     """A surfel model as parallel arrays (N surfels).
@@ -169,6 +172,48 @@ class Surfels:
             raise DofsplatError(f"{source}: no valid surfels (all {n} rows had NaN or inf)")
         return cls(**arrays, material=material or Material())
 
+    @classmethod
+    def stored(cls, positions, normals, radius, colors, opacity, tangent=None, radius_v=None,
+               weight=None, material: Material | None = None) -> "Surfels":
+        """Surfels from arrays that were checked when they were stored (``io.model_file``):
+        taken as they are, memory maps included, without the checks and copies of
+        ``Surfels(...)``, which would read every page of a file larger than memory."""
+        surfels = cls.__new__(cls)
+        surfels.positions, surfels.normals, surfels.radius, surfels.colors = (
+            positions, normals, radius, colors)
+        surfels.opacity, surfels.tangent, surfels.radius_v, surfels.weight = (
+            opacity, tangent, radius_v, weight)
+        surfels.material = material or Material()
+        return surfels
+
+    def remember_bounds(self, bounds, view_bounds) -> None:
+        """Keep ``bounds()`` and ``view_bounds()`` as known (a stored model's header holds
+        them), for these positions: nothing is read to answer them."""
+        box = lambda pair: tuple(np.asarray(v, np.float32) for v in pair)  # noqa: E731
+        self.__dict__["_known_bounds"] = (self.positions, box(bounds), box(view_bounds))
+
+    def sample(self, k: int) -> "Surfels":
+        """At most k of the surfels, drawn at random, seeded (the same model gives the same
+        sample), in their order; the model itself where it has k or fewer. A stored model
+        (``io.model_file``: its rows in another order, its arrays on disk) gives the sample
+        of the model it was prepared from, which its file keeps: what is made of it (the
+        default camera's direction) is that model's, and nothing of the file is read."""
+        known = self.__dict__.get("_known_sample")
+        if known is not None and known[0] is self.positions and known[1] == k:
+            return known[2]
+        n = len(self)
+        if n <= k:
+            return self
+        return self.subset(np.sort(np.random.default_rng(0).choice(n, k, replace=False)))
+
+    def remember_sample(self, k: int, sample: "Surfels") -> None:
+        """Keep ``sample(k)``'s answer for these positions (a stored model's file holds it)."""
+        self.__dict__["_known_sample"] = (self.positions, k, sample)
+
+    def _known(self, which: int):
+        known = self.__dict__.get("_known_bounds")
+        return known[which] if known is not None and known[0] is self.positions else None
+
     def subset(self, index) -> "Surfels":
         """The surfels selected by a boolean mask or an index array."""
         pick = lambda a: None if a is None else a[index]  # noqa: E731
@@ -179,12 +224,18 @@ class Surfels:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounding box (lo, hi) of the positions, world units."""
+        known = self._known(1)
+        if known is not None:
+            return known
         return self.positions.min(axis=0), self.positions.max(axis=0)
 
     def view_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``bounds``, widened by the largest disk radius where the box is smaller than
         that disk (one surfel, or all at one point): the box a default camera frames. A lone
         surfel's box is a point, and the camera framing it stood 3e-9 units from it."""
+        known = self._known(2)
+        if known is not None:
+            return known
         lo, hi = self.bounds()
         r = float(np.max(self.radius))
         if self.radius_v is not None:

@@ -5,6 +5,7 @@
     dofsplat reference (MODEL.ply | --demo) [-o reference.png] [--samples N] [the same options]
     dofsplat compare A B [--diff DIFF.png] [--json FILE.json]
     dofsplat convert INPUT -o OUT.ply [--k K] [--normalise object|render|none]
+    dofsplat prepare INPUT [-o OUT.dofsplat] [the same input options]
     dofsplat view (MODEL | --demo) [--port N] [--no-browser] [the same options]
     dofsplat animate (MODEL | --demo) -o OUT.mp4 --frames N [--focus-from P0 --focus-to P1 ...]
     dofsplat cache [--info | --clear [all|surfels|lod]]
@@ -35,7 +36,7 @@ import sys
 import warnings
 
 from ..errors import DofsplatError
-from . import animate, cache, compare, convert, demo, reference, render, view
+from . import animate, cache, compare, convert, demo, prepare, reference, render, view
 from .framing import format_count
 from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatter, Parser,
                       attach_negative_values, default_output)
@@ -43,7 +44,7 @@ from .options import (EPILOG, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, HelpFormatt
 __all__ = ["main", "entry", "build_parser", "default_output", "format_count", "EXIT_OK", "EXIT_USAGE",
            "EXIT_INTERRUPTED"]
 
-COMMANDS = (render, demo, view, reference, animate, compare, convert, cache)  # in the order --help lists them
+COMMANDS = (render, demo, view, reference, animate, compare, convert, prepare, cache)  # in the order --help lists them
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -207,9 +207,8 @@ def default_direction(up) -> tuple:
     return (0.0, 0.0, 1.0)
 
 
-# the direction choice renders at most this many surfels (a random sample, each disk
-# widened to keep the area they cover) into a frame of VISIBILITY_SIZE pixels
-VISIBILITY_SAMPLE = 20_000
+# the direction choice renders at most surfels.VIEW_SAMPLE surfels (a random sample, each
+# disk widened to keep the area they cover) into a frame of VISIBILITY_SIZE pixels
 VISIBILITY_SIZE = 64
 VISIBILITY_MARGIN = 1.05  # another side must show 5 % more surface to replace the default
 
@@ -249,16 +248,17 @@ def most_visible_direction(surfels, lo, hi, fov: float, width: int, height: int,
 
 
 def visibility_sample(surfels):
-    """At most VISIBILITY_SAMPLE of the surfels, drawn at random (seeded), their disks
-    widened by sqrt(N / n) so that the sample covers the surface the model does."""
+    """At most VIEW_SAMPLE of the surfels, drawn at random (seeded; ``Surfels.sample``),
+    their disks widened by sqrt(N / n) so that the sample covers the surface the model does."""
     import numpy as np
 
+    from ..surfels import VIEW_SAMPLE
+
     n = len(surfels)
-    if n <= VISIBILITY_SAMPLE:
-        return surfels
-    pick = np.sort(np.random.default_rng(0).choice(n, VISIBILITY_SAMPLE, replace=False))
-    sample = surfels.subset(pick)
-    grow = np.float32(math.sqrt(n / VISIBILITY_SAMPLE))
+    sample = surfels.sample(VIEW_SAMPLE)
+    if len(sample) == n:
+        return sample
+    grow = np.float32(math.sqrt(n / VIEW_SAMPLE))
     from dataclasses import replace
 
     return replace(sample, radius=sample.radius * grow,
@@ -266,6 +266,7 @@ def visibility_sample(surfels):
 
 
 FILL = 0.92  # the model's projection spans this fraction of the frame's limiting side
+FIT_CHUNK = 1 << 20  # fit_camera reads the disks this many at a time
 
 
 def fit_camera(positions, radius, lo, hi, width: int, height: int, fov: float, direction,
@@ -287,21 +288,29 @@ def fit_camera(positions, radius, lo, hi, width: int, height: int, fov: float, d
     right /= np.linalg.norm(right)
     true_up = np.cross(right, -d)
     centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
-    p = np.asarray(positions, np.float64) - centre
-    r = np.asarray(radius, np.float64)
-    x, y, z = p @ right, p @ true_up, p @ d
     ty = math.tan(math.radians(fov) / 2.0) * FILL
     tx = ty * width / height
+    # the maxima over the disks, a chunk of rows at a time (a stored model's positions are a
+    # memory map: read once, never held as float64 copies)
+    top = np.full(6, -np.inf)  # far_x, near_x, far_y, near_y, z, r
+    for i in range(0, max(len(positions), 1), FIT_CHUNK):
+        p = np.asarray(positions[i:i + FIT_CHUNK], np.float64) - centre
+        r = np.asarray(radius[i:i + FIT_CHUNK], np.float64)
+        if not len(p):
+            continue
+        x, y, z = p @ right, p @ true_up, p @ d
+        top = np.maximum(top, [np.max(z + (x + r) / tx), np.max(z + (r - x) / tx),
+                               np.max(z + (y + r) / ty), np.max(z + (r - y) / ty),
+                               z.max(), r.max()])
 
-    def side(a, t):  # (lateral centre, eye distance) that fit the coordinates a
-        far, near = np.max(z + (a + r) / t), np.max(z + (r - a) / t)
+    def side(far, near, t):  # (lateral centre, eye distance) that fit the coordinates
         return 0.5 * t * (far - near), 0.5 * (far + near)
 
-    cx, ex = side(x, tx)
-    cy, ey = side(y, ty)
-    extent = max(float(np.linalg.norm(np.asarray(hi, float) - lo)), float(r.max(initial=0)),
+    cx, ex = side(top[0], top[1], tx)
+    cy, ey = side(top[2], top[3], ty)
+    extent = max(float(np.linalg.norm(np.asarray(hi, float) - lo)), float(max(top[5], 0.0)),
                  1e-9)
-    eye_z = max(ex, ey, float(z.max()) + 0.05 * extent)  # nothing at the eye
+    eye_z = max(ex, ey, float(top[4]) + 0.05 * extent)  # nothing at the eye
     lateral = centre + cx * right + cy * true_up
     eye = lateral + eye_z * d
     target = lateral  # depth 0: the box's centre

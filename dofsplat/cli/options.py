@@ -72,7 +72,7 @@ class Parser(argparse.ArgumentParser):
 
 # what ``render`` reads, for the help texts (dofsplat.io.LOADERS holds the loaders)
 MODEL_EXTENSIONS = (".ply", ".ply.gz", ".obj", ".gltf", ".glb", ".stl", ".off", ".las", ".laz",
-                     ".e57", ".pcd", ".spz", ".sog")
+                     ".e57", ".pcd", ".spz", ".sog", ".dofsplat")
 
 
 def add_input_options(p: argparse.ArgumentParser) -> None:

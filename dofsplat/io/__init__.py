@@ -28,6 +28,7 @@ from .images import (SUPPORTED_IMAGE_EXTENSIONS, atomic_write, check_output_path
 from .e57 import E57_EXTENSIONS, read_e57
 from .las import LAS_EXTENSIONS, read_las
 from .mesh import MESH_EXTENSIONS, read_mesh
+from .model_file import EXTENSION as MODEL_FILE_EXTENSION, read_model_file
 from . import prepared
 from .pcd import PCD_EXTENSIONS, read_pcd
 from .cameras_json import attach_cameras
@@ -50,6 +51,8 @@ LOADERS: dict[str, Callable[..., Surfels | Gaussians]] = {
     # holding meta.json or lod-meta.json is read by read_sog too: see load)
     ".spz": read_spz,
     ".sog": read_sog,
+    # a prepared model: surfels and their LOD tree, read through memory maps (model_file)
+    MODEL_FILE_EXTENSION: read_model_file,
     META: read_sog,
     LOD_META: read_sog,
 }
@@ -64,7 +67,8 @@ __all__ = ["LOADERS", "SAVERS", "SUPPORTED_IMAGE_EXTENSIONS", "atomic_write",
            "check_output_path", "check_writable_path", "linear_to_srgb", "load", "model_options",
            "nonfinite_pixels",
            "read_image",
-           "read_e57", "read_las", "read_mesh", "read_pcd", "read_ply", "read_surfel_ply",
+           "read_e57", "read_las", "read_mesh", "read_model_file", "read_pcd", "read_ply",
+           "read_surfel_ply",
            "read_sog", "read_spz", "save_surfels", "srgb_to_linear", "write_depth",
            "write_gaussian_ply", "write_image", "write_surfel_ply"]
 
@@ -98,7 +102,8 @@ def load(path, cache: str = "auto", **options) -> Surfels | Gaussians:
     _check_options(loader, path, options)
     if cache not in ("auto", "off"):
         raise DofsplatError(f"cache must be 'auto' or 'off', got {cache!r}")
-    use_cache = cache == "auto" and not _holds_gaussians(path, loader)
+    use_cache = (cache == "auto" and not _holds_gaussians(path, loader)
+                 and loader is not read_model_file)  # (prepared already)
     model = prepared.load_prepared(path, loader, options, use_cache=use_cache)
     if isinstance(model, Gaussians):
         attach_cameras(model, path)  # a trainer's cameras.json: the default view

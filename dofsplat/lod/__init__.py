@@ -12,7 +12,8 @@ from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
 from .select import cut_nodes, gather_gradients, gather_splats, select_nodes
 
 __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
-           "hierarchy_for", "leaf_arrays", "select_cut", "select_splats", "select_nodes",
+           "hierarchy_for", "leaf_arrays", "min_leaf_geo", "min_leaf_geo_keep", "select_cut",
+           "select_splats", "select_nodes",
            "splat_buffers"]
 
 
@@ -86,14 +87,26 @@ def min_leaf_geo(tree: Hierarchy, surfels, small: int):
     from .select import subtree_min_geo
 
     order, _, _, _, _, _, ru, rv, _ = leaf_arrays(tree, surfels)
-    cached = tree.__dict__.setdefault("_min_geo", {})
-    hit = cached.get(small)
-    if hit is not None and hit[0] is ru and hit[1] is rv:
+    hit = tree.__dict__.setdefault("_min_geo", {}).get(small)
+    if hit is not None and _same(hit[0], ru) and _same(hit[1], rv):
         return hit[2]
     out = np.zeros(max(int(stored_nodes(tree.n_surfels, small)), 1), np.float32)
     subtree_min_geo(tree.n_surfels, small, order, ru, rv if rv.shape[0] else ru, out)
-    cached[small] = (ru, rv, out)
+    min_leaf_geo_keep(tree, surfels, out, small)
     return out
+
+
+def min_leaf_geo_keep(tree: Hierarchy, surfels, values, small: int | None = None) -> None:
+    """Keep ``min_leaf_geo``'s values for this tree, these surfels and ``small`` (the tree's
+    own where None): a stored model's file holds them (``io.model_file``)."""
+    _, _, _, _, _, _, ru, rv, _ = leaf_arrays(tree, surfels)
+    tree.__dict__.setdefault("_min_geo", {})[tree.small if small is None else small] = (
+        ru, rv, values)
+
+
+def _same(a, b) -> bool:
+    """The same array object, or both empty (a round model's r_v is a new empty array)."""
+    return a is b or (a.size == 0 and b.size == 0)
 
 
 def model_arrays(tree: Hierarchy, surfels):
@@ -121,7 +134,8 @@ def leaf_arrays(tree: Hierarchy, surfels):
               surfels.tangent if surfels.is_elliptical else np.zeros((0, 3), np.float32),
               surfels.radius, surfels.radius_v if surfels.is_elliptical else empty,
               surfels.weight if surfels.weight is not None else empty)
-    if tree.small != 1:
+    if tree.small != 1 or getattr(tree, "leaf_ordered", False):
+        # (a stored model's surfels are in leaf order already: io.model_file)
         return (tree.order, *arrays)
     cached = getattr(tree, "_leaf_arrays", None)
     if cached is None or any(a is not b and (a.size or b.size) for a, b in zip(cached[0], arrays)):

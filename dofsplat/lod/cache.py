@@ -34,6 +34,9 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
     log:   called with one line when a tree is built and saved (where), or took a second
     The tree is also kept on the ``Surfels`` object, where ``render`` finds it.
     """
+    kept = getattr(surfels, "_lod_hierarchy", None)
+    if kept is not None and getattr(kept, "leaf_ordered", False):
+        return kept  # a stored model's own tree (io.model_file), checked when it was opened
     if cache_arg is None or str(cache_arg) == "off":
         path = None
     elif str(cache_arg) == "auto":

@@ -271,7 +271,12 @@ def fingerprint(surfels: Surfels, cached: bool = False) -> str:
     """The content hash (``dofsplat.fingerprint``) of every surfel array that the tree
     depends on, and of the tree's format: changes when the model does. cached: reuse the
     hash kept on the model while its arrays are the same objects (edits in place unseen)."""
-    return content_hash(surfels, TREE_FIELDS, f"lod v{FORMAT_VERSION}", cached=cached)
+    return content_hash(surfels, TREE_FIELDS, fingerprint_salt(), cached=cached)
+
+
+def fingerprint_salt() -> str:
+    """What ``fingerprint`` hashes first: the tree's format (a new one makes old trees stale)."""
+    return f"lod v{FORMAT_VERSION}"
 
 
 def build_hierarchy(surfels: Surfels, progress: bool = False,

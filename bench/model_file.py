@@ -1,0 +1,114 @@
+"""Rendering from a prepared ``.dofsplat`` file against the same model held in memory (issue 50).
+
+    python bench/model_file.py MODEL.dofsplat [--size 1920x1080] [--cocs 0 10 40]
+
+Each frame runs in a process of its own, so that its peak memory is its own: the model
+opened from the file (memory maps: the pages a frame reads come from the page cache and
+count as the process's file-backed memory, which the kernel can drop) or read whole into
+memory first (the in-memory path: the arrays copied from the file, the tree with them), the
+default camera of ``dofsplat render`` (focused on the surface at the image centre), a pinhole
+frame and frames whose largest circle of confusion is about each ``--cocs`` px. Printed:
+the wall time of the frame (after opening the model; numba's kernels are compiled by a
+first frame in the same process, not timed), the process's peak anonymous memory (its own
+allocations: the figure that must stay bounded), its file-backed memory after the frame
+(the model's pages it read), and whether the two images are the same.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+from dofsplat.io import load
+from dofsplat import render, RenderSettings, ThinLens
+from dofsplat.cli.render import model_view
+from dofsplat.cli import build_parser
+
+path, width, height, coc, in_memory, out = sys.argv[1:7]
+width, height, coc = int(width), int(height), float(coc)
+model = load(path)
+if in_memory == "1":  # the same model, every array in memory
+    from dataclasses import fields
+    tree = model._lod_hierarchy
+    for f in fields(model):
+        value = getattr(model, f.name)
+        if isinstance(value, np.ndarray):
+            setattr(model, f.name, np.array(value))
+    for f in fields(tree):
+        value = getattr(tree, f.name)
+        if isinstance(value, np.ndarray):
+            setattr(tree, f.name, np.array(value))
+    model._lod_hierarchy = tree
+    from dofsplat.fingerprint import content_hash
+    from dofsplat.lod.hierarchy import TREE_FIELDS, fingerprint_salt
+    from dofsplat.fingerprint import remember_hash
+    remember_hash(model, TREE_FIELDS, fingerprint_salt(), tree.fingerprint)
+    model.remember_bounds(model.bounds(), model.view_bounds())
+args = build_parser().parse_args(["render", path, "--size", f"{width}x{height}"])
+args.input = path
+camera, focus, _ = model_view(args, model)
+lens = None
+if coc > 0:
+    # the aperture whose CoC at the model's far side is coc px: C_r = K |1/z - 1/P|
+    lo, hi = model.view_bounds()
+    far = float(np.linalg.norm(np.asarray(camera.eye) - 0.5 * (lo + hi))) + 0.5 * float(np.linalg.norm(hi - lo))
+    k_per_aperture = ThinLens(focus_distance=focus, aperture=1.0).coc_coefficients(camera)[0]
+    lens = ThinLens(focus_distance=focus, aperture=coc / (k_per_aperture * abs(1 / far - 1 / focus)))
+from dataclasses import replace
+small = replace(camera, width=64, height=48)
+render(model, small, lens, RenderSettings())  # compile
+t = time.perf_counter()
+frame = render(model, camera, lens, RenderSettings())
+seconds = time.perf_counter() - t
+status = dict(line.split(":", 1) for line in open("/proc/self/status") if ":" in line)
+kb = lambda key: int(status[key].split()[0]) if key in status else -1
+np.save(out, frame.image)
+print(json.dumps({"seconds": seconds, "peak_rss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+                  "rss_anon_kb": kb("RssAnon"), "rss_file_kb": kb("RssFile"),
+                  "splats": frame.stats.get("splats_rendered")}))
+"""
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model", type=Path)
+    parser.add_argument("--size", default="1920x1080")
+    parser.add_argument("--cocs", type=float, nargs="+", default=[0.0, 10.0, 40.0])
+    args = parser.parse_args(argv)
+    import numpy as np
+
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    print(f"{args.model} ({args.model.stat().st_size / 1e6:,.0f} MB), {width}x{height}, "
+          f"{platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores")
+    print("| CoC px | from | s | peak RSS MB | anonymous MB after | file-backed MB after | splats | same image |")
+    print("|---:|---|---:|---:|---:|---:|---:|---|")
+    for coc in args.cocs:
+        images = {}
+        for in_memory in ("0", "1"):
+            out = f"/tmp/model_file_bench_{in_memory}.npy"
+            result = subprocess.run([sys.executable, "-c", CHILD, str(args.model), str(width),
+                                     str(height), str(coc), in_memory, out],
+                                    capture_output=True, text=True)
+            if result.returncode:
+                print(result.stderr[-2000:])
+                return 1
+            row = json.loads(result.stdout.strip().splitlines()[-1])
+            images[in_memory] = np.load(out)
+            same = "" if in_memory == "0" else (
+                "yes" if np.array_equal(images["0"], images["1"]) else "NO")
+            print(f"| {coc:.0f} | {'file' if in_memory == '0' else 'memory'} | "
+                  f"{row['seconds']:.2f} | {row['peak_rss_kb'] / 1024:,.0f} | "
+                  f"{row['rss_anon_kb'] / 1024:,.0f} | {row['rss_file_kb'] / 1024:,.0f} | "
+                  f"{row['splats']:,} | {same} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,268 @@
+"""The prepared model on disk (``.dofsplat``, issue 50): surfels and their LOD tree in one
+file, read through memory maps, so that a frame reads the pages of its cut and the page
+cache does the caching (docs/outofcore.md).
+
+    dofsplat prepare SCAN.laz -o SCAN.dofsplat      # once: surfels, tree, file
+    dofsplat render SCAN.dofsplat -o out.png ...    # any number of times: milliseconds to open
+
+The layout (little-endian; every array starts on a 4 KiB page):
+
+    0     magic b"DOFSPLAT", format version (uint32), header length H (uint32)
+    16    the header: H bytes of UTF-8 JSON (counts, material, fingerprints, bounds, source,
+          and each array's name, dtype, shape and offset)
+    ...   the arrays: the surfels' (positions, normals, radius, colors, opacity, and tangent,
+          radius_v, weight where the model has them) in the tree's leaf order, the default
+          camera's sample (``Surfels.sample``: the source's, 20,000 surfels at most), then
+          the tree's (``lod.Hierarchy``: order, the identity, a row per stored node in
+          preorder, and ``lod.min_leaf_geo``, the pinhole walk's bound), in that order
+    end   the trailer: b"DOFSPLAT-COMPLETE" padded to 24 bytes, then the header's BLAKE2b
+          digest (8 bytes)
+
+The surfels are stored in leaf order, so a subtree's surfels lie together on disk as its
+nodes do (preorder): the cut of a frame reads runs of pages, and a region the frame does
+not see, or sees blurred, is not read at all. A file is trusted only when its size, its
+trailer and the header's digest agree (a build writes the trailer last, into a temporary
+file renamed at the end: an interrupted one leaves nothing a render reads); anything else is
+one ``DofsplatError`` line ("not a complete dofsplat model file").
+
+Not yet: the out-of-core build (the model is prepared in memory, then written), and the
+quantised attributes of docs/outofcore.md's plan (this file holds float32 arrays:
+``bytes_per_surfel`` says how many).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DofsplatError
+from ..surfels import VIEW_SAMPLE, Material, Surfels
+
+EXTENSION = ".dofsplat"
+MAGIC = b"DOFSPLAT"
+VERSION = 1
+PAGE = 4096
+TRAILER_MARK = b"DOFSPLAT-COMPLETE".ljust(24, b"\0")
+TRAILER = len(TRAILER_MARK) + 8  # the mark, then the header's digest
+HINTS = ("up_hint", "shading_hint", "capture")  # what loaders tell render about a model (kept)
+SURFEL_ARRAYS = ("positions", "normals", "radius", "colors", "opacity", "tangent", "radius_v",
+                 "weight")
+
+
+def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
+                     progress: bool = False) -> Path:
+    """Write ``surfels`` and their LOD ``tree`` (``lod.Hierarchy``, built for them) as a
+    ``.dofsplat`` file, atomically; returns the path. source: what the model was prepared
+    from (kept in the header, shown by ``describe``)."""
+    from ..fingerprint import content_hash
+    from ..io.images import atomic_write
+    from ..lod import FORMAT_VERSION, min_leaf_geo
+    from ..lod.hierarchy import ATTRIBUTES, TREE_FIELDS, fingerprint
+
+    if tree.n_surfels != len(surfels) or tree.fingerprint != fingerprint(surfels, cached=True):
+        raise DofsplatError("write_model_file: the LOD tree was not built for these surfels")
+    order = np.asarray(tree.order)
+    arrays = {}
+    for name in SURFEL_ARRAYS:
+        a = getattr(surfels, name)
+        if a is not None:
+            arrays[f"surfels.{name}"] = np.ascontiguousarray(a[order])
+    # the default camera's sample (Surfels.sample), the source's own
+    sample = surfels.sample(VIEW_SAMPLE)
+    for name in SURFEL_ARRAYS:
+        a = getattr(sample, name)
+        if a is not None:
+            arrays[f"sample.{name}"] = np.ascontiguousarray(a)
+    arrays["tree.order"] = np.arange(len(order), dtype=order.dtype)
+    for name in ATTRIBUTES:
+        arrays[f"tree.{name}"] = np.ascontiguousarray(getattr(tree, name))
+    arrays["tree.min_geo"] = min_leaf_geo(tree, surfels, tree.small)  # (order-free)
+    # the leaf-ordered model's own fingerprints: what a render checks the tree against
+    stored = Surfels.stored(material=surfels.material, **{
+        name: arrays.get(f"surfels.{name}") for name in SURFEL_ARRAYS})
+    surfel_hash = fingerprint(stored)
+    lo, hi = stored.bounds()
+    view_lo, view_hi = stored.view_bounds()
+    header = {
+        "kind": "surfels",
+        "count": len(surfels),
+        "material": asdict(surfels.material),
+        "tree": {"small": int(tree.small), "format": FORMAT_VERSION,
+                 "fingerprint": surfel_hash, "fields": list(TREE_FIELDS)},
+        "content_hash": content_hash(stored),
+        "bounds": [lo.tolist(), hi.tolist()],
+        "view_bounds": [view_lo.tolist(), view_hi.tolist()],
+        "source": source or {},
+        "hints": {name: _plain(getattr(surfels, name)) for name in HINTS
+                  if getattr(surfels, name, None) is not None},
+        "arrays": [],
+    }
+    # offsets: the header's length is not known until the offsets are, so lay the arrays
+    # out after a first guess and grow it until it fits
+    first = PAGE
+    while True:
+        offset, listing = first, []
+        for name, a in arrays.items():
+            listing.append({"name": name, "dtype": a.dtype.str, "shape": list(a.shape),
+                            "offset": offset})
+            offset = _page(offset + a.nbytes)
+        header["arrays"] = listing
+        text = json.dumps(header, separators=(",", ":")).encode()
+        if 16 + len(text) <= first:
+            break
+        first = _page(16 + len(text))
+    end = offset
+    digest = hashlib.blake2b(text, digest_size=8).digest()
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            fh.write(MAGIC + struct.pack("<II", VERSION, len(text)) + text)
+            bar = _bar(sum(a.nbytes for a in arrays.values()), progress)
+            for entry, a in zip(listing, arrays.values()):
+                fh.seek(entry["offset"])
+                for chunk in _chunks(a):
+                    fh.write(chunk)
+                    bar.update(len(chunk))
+            bar.close()
+            fh.seek(end)
+            fh.write(TRAILER_MARK + digest)  # last: the file is complete
+
+    return atomic_write(path, write)
+
+
+class StoredSurfels(Surfels):
+    """Surfels whose arrays are memory maps of a ``.dofsplat`` file (``read_model_file``).
+    Pickled as the file's path: a Dask worker (``animate --scheduler``) opens the file
+    itself, at the same path (a shared disk), instead of receiving a copy of its arrays."""
+
+    def __reduce__(self):
+        return read_model_file, (self.model_file, self.material)
+
+
+def read_model_file(path, material: Material | None = None) -> Surfels:
+    """The surfels of a ``.dofsplat`` file, their arrays memory maps of it (nothing is read
+    until a frame needs it), with their LOD tree attached (``lod.hierarchy_for`` finds it),
+    ``model_file`` the file's path. material: replaces the file's. Raises
+    DofsplatError for a file that is not a complete dofsplat model file of this version."""
+    from ..fingerprint import remember_hash
+    from ..lod import FORMAT_VERSION, Hierarchy, min_leaf_geo_keep
+    from ..lod.hierarchy import ATTRIBUTES, TREE_FIELDS, fingerprint_salt
+
+    path = Path(path)
+    header = read_header(path)
+    maps = {}
+    for entry in header["arrays"]:
+        shape = tuple(entry["shape"])
+        dtype = np.dtype(entry["dtype"])
+        if int(np.prod(shape)) == 0:
+            maps[entry["name"]] = np.zeros(shape, dtype)
+        else:
+            maps[entry["name"]] = np.memmap(path, dtype=dtype, mode="r",
+                                            offset=entry["offset"], shape=shape)
+    tree_info = header["tree"]
+    if tree_info["format"] != FORMAT_VERSION:
+        raise DofsplatError(f"{path}: a dofsplat model file of an older LOD format "
+                            f"({tree_info['format']}, this version reads {FORMAT_VERSION}): "
+                            "prepare it again (dofsplat prepare)")
+    try:
+        own = Material(**header["material"])
+        if material == own:
+            material = None  # (the file's: its content hash holds)
+        surfels = StoredSurfels.stored(
+            material=own if material is None else material,
+            **{name: maps.get(f"surfels.{name}") for name in SURFEL_ARRAYS})
+        tree = Hierarchy(fingerprint=tree_info["fingerprint"], small=int(tree_info["small"]),
+                         order=maps["tree.order"],
+                         **{name: maps[f"tree.{name}"] for name in ATTRIBUTES})
+    except (KeyError, TypeError) as exc:
+        raise DofsplatError(f"{path}: not a complete dofsplat model file (missing {exc})") \
+            from None
+    tree.leaf_ordered = True  # order is the identity: lod.leaf_arrays reads the surfels as they are
+    remember_hash(surfels, TREE_FIELDS, fingerprint_salt(), tree_info["fingerprint"])
+    if material is None:
+        remember_hash(surfels, None, "", header["content_hash"])
+    for name, value in header.get("hints", {}).items():
+        if name in HINTS:
+            setattr(surfels, name, tuple(value) if name == "up_hint" else value)
+    surfels.remember_bounds(header["bounds"], header["view_bounds"])
+    sample = {name: maps.get(f"sample.{name}") for name in SURFEL_ARRAYS}
+    surfels.remember_sample(VIEW_SAMPLE, Surfels.stored(material=surfels.material, **{
+        name: None if a is None else np.array(a) for name, a in sample.items()}))
+    # the pinhole walk's bound per row (lod.min_leaf_geo), computed from every leaf
+    min_leaf_geo_keep(tree, surfels, maps["tree.min_geo"])
+    surfels._lod_hierarchy = tree
+    surfels.model_file = str(path.resolve())
+    return surfels
+
+
+def read_header(path: Path) -> dict:
+    """The header of a ``.dofsplat`` file, after checking its magic, version, length,
+    trailer and digest (module docstring); DofsplatError otherwise."""
+    def broken(why):
+        return DofsplatError(f"{path}: not a complete dofsplat model file ({why}); prepare "
+                             "it again (dofsplat prepare)")
+
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            start = fh.read(16)
+            if len(start) < 16 or start[:8] != MAGIC:
+                raise broken("no dofsplat header")
+            version, length = struct.unpack("<II", start[8:])
+            if version != VERSION:
+                raise DofsplatError(f"{path}: a dofsplat model file of format {version}; this "
+                                    f"version reads format {VERSION}: prepare it again")
+            if 16 + length + TRAILER > size:
+                raise broken("cut short")
+            text = fh.read(length)
+            fh.seek(size - TRAILER)
+            trailer = fh.read(TRAILER)
+    except OSError as exc:
+        raise DofsplatError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if trailer[:len(TRAILER_MARK)] != TRAILER_MARK:
+        raise broken("no completion mark: cut short, or an interrupted write")
+    if trailer[len(TRAILER_MARK):] != hashlib.blake2b(text, digest_size=8).digest():
+        raise broken("its header does not match its completion mark")
+    try:
+        header = json.loads(text)
+        end = 0
+        for entry in header["arrays"]:
+            nbytes = int(np.prod(entry["shape"])) * np.dtype(entry["dtype"]).itemsize
+            end = max(end, int(entry["offset"]) + nbytes)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise broken(f"its header is damaged: {exc}") from None
+    if end + TRAILER > size:
+        raise broken("cut short")
+    return header
+
+
+def _plain(value):
+    """value with numpy arrays and scalars as lists and numbers (for the JSON header)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _page(offset: int) -> int:
+    return -(-offset // PAGE) * PAGE
+
+
+def _chunks(a: np.ndarray, size: int = 64 << 20):
+    """a's bytes in pieces of at most ``size`` (a progress bar's steps; no copy)."""
+    flat = a.reshape(-1).view(np.uint8)
+    for i in range(0, flat.size, size):
+        yield flat[i:i + size]
+
+
+def _bar(total: int, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="B", unit_scale=True, desc="writing", disable=not progress,
+                leave=False)
