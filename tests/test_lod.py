@@ -9,6 +9,7 @@ import pytest
 import dofsplat as ds
 from dofsplat.demo import textured_plane
 from dofsplat.lod import Hierarchy, build_hierarchy, model_arrays, select_splats
+from dofsplat.lod.select import NO_CHILD
 from dofsplat.render import project, shade_surfels
 from dofsplat.slow import project_reference
 
@@ -341,7 +342,8 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     select_nodes(stored.n_surfels, (stored.center, stored.bound, stored.extent,
                                     stored.position, stored.normal, stored.cone,
                                     stored.sigma_r2, stored.lod_cov, stored.color_detail),
-                 stored.small, model_arrays(stored, s), np.zeros(0, np.float32), 0.0, view,
+                 stored.small, NO_CHILD, 0, model_arrays(stored, s), np.zeros(0, np.float32),
+                 0.0, view,
                  ax, bx, ay, by, 0.01, 160, 120,
                  coc_k, inv_p, 2.5, 0.0, 1.0, math.inf, 2, True, flags)
     chosen = np.flatnonzero(flags == 1)  # SELECT (CULL and DESCEND mark the other visits)
@@ -358,7 +360,7 @@ def test_cut_is_a_valid_coarsest_cut(bumpy):
     from dofsplat.lod.select import cut_runs
     assert len(flags) > 64 * 20
     for runs in (2, 7, 64):
-        for got, want in zip(cut_runs(flags, stored.n_surfels, stored.small, runs),
+        for got, want in zip(cut_runs(flags, stored.n_surfels, stored.small, NO_CHILD, 0, runs),
                              (nodes, first, counts, rows)):
             np.testing.assert_array_equal(got, want)
     inner = chosen[tree.count[chosen] > 1]
@@ -677,8 +679,8 @@ def test_the_pinhole_walk_cuts_what_the_visits_cut(bumpy, small, eye, width, hei
 
     flags = []
     cut_nodes = lod.cut_nodes
-    monkeypatch.setattr(lod, "cut_nodes", lambda f, n, small: flags.append(f.copy())
-                        or cut_nodes(f, n, small))
+    monkeypatch.setattr(lod, "cut_nodes", lambda f, n, small, *layout: flags.append(f.copy())
+                        or cut_nodes(f, n, small, *layout))
     s = bumpy[0]
     tree = build_hierarchy(s, small=small)
     cam = ds.Camera(eye=eye, target=(0, 0.3, 0), width=width, height=height, fov_y=50)
@@ -688,7 +690,7 @@ def test_the_pinhole_walk_cuts_what_the_visits_cut(bumpy, small, eye, width, hei
         np.testing.assert_array_equal(a, b)
     assert (np.sum(flags[0] > LEAVES) > 0) == (eye[2] != 6.0)  # the far view: no such node
     for runs in (2, 7, 64):
-        for a, b in zip(cut_runs(flags[0], tree.n_surfels, tree.small, runs), slow):
+        for a, b in zip(cut_runs(flags[0], tree.n_surfels, tree.small, NO_CHILD, 0, runs), slow):
             np.testing.assert_array_equal(a, b)
     if width < 64:  # the grazing views: the pixel stop's nodes beside the leaves' subtrees
         assert 0 < np.sum(slow[2] > 1) < slow[0].size
@@ -703,7 +705,8 @@ def _cut(tree, s, cam, lens):
     select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
                                   tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
                                   tree.color_detail),
-                 tree.small, model_arrays(tree, s), np.zeros(0, np.float32), 0.0, view,
+                 tree.small, NO_CHILD, 0, model_arrays(tree, s), np.zeros(0, np.float32), 0.0,
+                 view,
                  ax, bx, ay, by, cam.frustum_lrbtn()[4], cam.width, cam.height,
                  *lens.coc_coefficients(cam),
                  2.5, 1.0, 1.0, math.inf, 2, True, flags)
@@ -996,3 +999,48 @@ def test_the_frustum_margin_keeps_a_blurred_model_just_outside_the_frame():
     assert full.alpha[:, -1].max() > 0.4 and full.alpha[:, -12].max() > 0.1
     assert lod.stats["splats_selected"] < 0.01 * len(s)  # nodes, drawn whole
     np.testing.assert_allclose(lod.image, full.image, atol=0.02)
+
+
+# -- the blocked layout of a stored model (Hierarchy.blocked, io.model_file) --------------
+
+@pytest.mark.parametrize("small", [1, 3], ids=["full", "compact"])
+@pytest.mark.parametrize("levels", [1, 3, 8])
+def test_a_blocked_tree_cuts_as_the_preorder_tree(bumpy, small, levels):
+    """The same tree with its rows in blocks of 1, 3 and 8 levels (breadth first in a block,
+    the blocks in preorder): its rows a permutation of the preorder ones, every node's row
+    where the walk finds it (``Hierarchy.rows``, through ``child_rows``), and a pinhole and
+    a blurred frame's cut the same nodes with their rows moved, gathered into the same
+    splats and drawn into the same image, bit for bit."""
+    s = bumpy[0]
+    tree = build_hierarchy(s, small=small)
+    blocked, file_row = tree.blocked(levels)
+    k = len(tree.center)
+    np.testing.assert_array_equal(np.sort(file_row), np.arange(k))
+    stored = tree.rows >= 0
+    np.testing.assert_array_equal(blocked.rows[stored], file_row[tree.rows[stored]])
+    np.testing.assert_array_equal(blocked.rows[~stored], -1)
+    np.testing.assert_array_equal(blocked.center[file_row], tree.center)
+    from dofsplat.lod import gather_cut, select_cut
+
+    from dofsplat.lod import min_leaf_geo
+
+    geo = min_leaf_geo(tree, s, small)  # the pinhole walk's bound, moved with the rows
+    np.testing.assert_array_equal(min_leaf_geo(blocked, s, small)[file_row], geo[:k])
+    far = ds.Camera(eye=(1.0, 3.5, 6.5), target=(0, 0.1, 0), width=80, height=60, fov_y=45)
+    near = ds.Camera(eye=(0.0, -1.6, 0.35), target=(0, 0.3, 0), width=48, height=36, fov_y=50)
+    for cam, lens in ((far, None), (far, ds.ThinLens(focus_distance=6.0, aperture=1.5)),
+                      (near, None)):  # (near: the pinhole walk's leaves below, min_geo)
+        coc_k, inv_p = (0.0, 0.0) if lens is None else lens.coc_coefficients(cam)
+        a = select_cut(tree, s, cam, coc_k, inv_p, 2.5, 1.0, True)
+        b = select_cut(blocked, s, cam, coc_k, inv_p, 2.5, 1.0, True)
+        for got, want in zip(b[:3], a[:3]):
+            np.testing.assert_array_equal(got, want)
+        inner = a[3] >= 0
+        assert inner.sum() > (20 if cam is far else 0)
+        np.testing.assert_array_equal(b[3][inner], file_row[a[3][inner]])
+        np.testing.assert_array_equal(b[3][~inner], -1)
+        for got, want in zip(gather_cut(blocked, s, b), gather_cut(tree, s, a)):
+            if isinstance(want, np.ndarray):
+                np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(ds.render(s, cam, lens, hierarchy=blocked).image,
+                                      ds.render(s, cam, lens, hierarchy=tree).image)

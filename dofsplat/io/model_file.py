@@ -13,14 +13,16 @@ The layout (little-endian; every array starts on a 4 KiB page):
     ...   the arrays: the surfels' (positions, normals, radius, colors, opacity, and tangent,
           radius_v, weight where the model has them) in the tree's leaf order, the default
           camera's sample (``Surfels.sample``: the source's, 20,000 surfels at most), then
-          the tree's (``lod.Hierarchy``: order, the identity, a row per stored node in
-          preorder, and ``lod.min_leaf_geo``, the pinhole walk's bound), in that order
+          the tree's (``lod.Hierarchy``: order, the identity, a row per stored node in the
+          blocked layout of ``Hierarchy.blocked``, each row's first child's row, and
+          ``lod.min_leaf_geo``, the pinhole walk's bound), in that order
     end   the trailer: b"DOFSPLAT-COMPLETE" padded to 24 bytes, then the header's BLAKE2b
           digest (8 bytes)
 
-The surfels are stored in leaf order, so a subtree's surfels lie together on disk as its
-nodes do (preorder): the cut of a frame reads runs of pages, and a region the frame does
-not see, or sees blurred, is not read at all. A file is trusted only when its size, its
+The surfels are stored in leaf order, so a subtree's surfels lie together on disk, and the
+tree's rows in blocks of BLOCK_LEVELS levels, breadth first within a block, the blocks in
+preorder (``Hierarchy.blocked``): a cut that stops a few levels into a block reads the
+block's first rows, where rows in preorder put a cut's nodes on a page each. A file is trusted only when its size, its
 trailer and the header's digest agree (a build writes the trailer last, into a temporary
 file renamed at the end: an interrupted one leaves nothing a render reads); anything else is
 one ``DofsplatError`` line ("not a complete dofsplat model file").
@@ -45,7 +47,8 @@ from ..surfels import VIEW_SAMPLE, Material, Surfels
 
 EXTENSION = ".dofsplat"
 MAGIC = b"DOFSPLAT"
-VERSION = 1
+VERSION = 2  # 1: the tree's rows in preorder
+BLOCK_LEVELS = 8  # the tree's rows in blocks of this many levels (Hierarchy.blocked)
 PAGE = 4096
 TRAILER_MARK = b"DOFSPLAT-COMPLETE".ljust(24, b"\0")
 TRAILER = len(TRAILER_MARK) + 8  # the mark, then the header's digest
@@ -55,10 +58,11 @@ SURFEL_ARRAYS = ("positions", "normals", "radius", "colors", "opacity", "tangent
 
 
 def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
-                     progress: bool = False) -> Path:
+                     progress: bool = False, block_levels: int = BLOCK_LEVELS) -> Path:
     """Write ``surfels`` and their LOD ``tree`` (``lod.Hierarchy``, built for them) as a
     ``.dofsplat`` file, atomically; returns the path. source: what the model was prepared
-    from (kept in the header, shown by ``describe``)."""
+    from (kept in the header). block_levels: the tree's blocks (0: its rows in preorder, for
+    ``bench/model_file.py``'s comparison)."""
     from ..fingerprint import content_hash
     from ..io.images import atomic_write
     from ..lod import FORMAT_VERSION, min_leaf_geo
@@ -79,9 +83,18 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
         if a is not None:
             arrays[f"sample.{name}"] = np.ascontiguousarray(a)
     arrays["tree.order"] = np.arange(len(order), dtype=order.dtype)
-    for name in ATTRIBUTES:
-        arrays[f"tree.{name}"] = np.ascontiguousarray(getattr(tree, name))
-    arrays["tree.min_geo"] = min_leaf_geo(tree, surfels, tree.small)  # (order-free)
+    geo = min_leaf_geo(tree, surfels, tree.small)
+    if block_levels:
+        blocked, file_row = tree.blocked(block_levels)
+        arrays.update({f"tree.{name}": getattr(blocked, name) for name in ATTRIBUTES})
+        arrays["tree.child"] = blocked.child
+        min_geo = np.empty_like(geo)
+        min_geo[file_row] = geo[:len(file_row)]
+        arrays["tree.min_geo"] = min_geo
+    else:
+        arrays.update({f"tree.{name}": np.ascontiguousarray(getattr(tree, name))
+                       for name in ATTRIBUTES})
+        arrays["tree.min_geo"] = geo
     # the leaf-ordered model's own fingerprints: what a render checks the tree against
     stored = Surfels.stored(material=surfels.material, **{
         name: arrays.get(f"surfels.{name}") for name in SURFEL_ARRAYS})
@@ -93,6 +106,7 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
         "count": len(surfels),
         "material": asdict(surfels.material),
         "tree": {"small": int(tree.small), "format": FORMAT_VERSION,
+                 "block_levels": int(block_levels),
                  "fingerprint": surfel_hash, "fields": list(TREE_FIELDS)},
         "content_hash": content_hash(stored),
         "bounds": [lo.tolist(), hi.tolist()],
@@ -177,7 +191,8 @@ def read_model_file(path, material: Material | None = None) -> Surfels:
             material=own if material is None else material,
             **{name: maps.get(f"surfels.{name}") for name in SURFEL_ARRAYS})
         tree = Hierarchy(fingerprint=tree_info["fingerprint"], small=int(tree_info["small"]),
-                         order=maps["tree.order"],
+                         order=maps["tree.order"], child=maps.get("tree.child"),
+                         block_levels=int(tree_info["block_levels"]),
                          **{name: maps[f"tree.{name}"] for name in ATTRIBUTES})
     except (KeyError, TypeError) as exc:
         raise DofsplatError(f"{path}: not a complete dofsplat model file (missing {exc})") \

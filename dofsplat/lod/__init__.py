@@ -9,7 +9,7 @@ ordinary projection kernel.
 from __future__ import annotations
 
 from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
-from .select import cut_nodes, gather_gradients, gather_splats, select_nodes
+from .select import NO_CHILD, cut_nodes, gather_gradients, gather_splats, select_nodes
 
 __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
            "hierarchy_for", "leaf_arrays", "min_leaf_geo", "min_leaf_geo_keep", "select_cut",
@@ -65,15 +65,17 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
     sharp = walk_to_leaves and coc_k <= 0.0
     min_geo = min_leaf_geo(tree, surfels, tree.small) if sharp else np.zeros(0, np.float32)
     a_min = float(min(abs(ax), abs(ay))) if sharp else 0.0
+    child = NO_CHILD if tree.child is None else tree.child
     select_nodes(tree.n_surfels, (tree.center, tree.bound, tree.extent, tree.position,
                                   tree.normal, tree.cone, tree.sigma_r2, tree.lod_cov,
                                   tree.color_detail),
-                 tree.small, model_arrays(tree, surfels), min_geo, a_min, view, ax, bx, ay,
+                 tree.small, child, np.int64(tree.block_levels), model_arrays(tree, surfels),
+                 min_geo, a_min, view, ax, bx, ay,
                  by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
                  float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
                  np.int64(min_node), bool(cull_backfaces), flags)
-    return cut_nodes(flags, tree.n_surfels, tree.small)
+    return cut_nodes(flags, tree.n_surfels, tree.small, child, np.int64(tree.block_levels))
 
 
 def min_leaf_geo(tree: Hierarchy, surfels, small: int):
@@ -92,6 +94,14 @@ def min_leaf_geo(tree: Hierarchy, surfels, small: int):
         return hit[2]
     out = np.zeros(max(int(stored_nodes(tree.n_surfels, small)), 1), np.float32)
     subtree_min_geo(tree.n_surfels, small, order, ru, rv if rv.shape[0] else ru, out)
+    if tree.block_levels and small == tree.small:  # (rows in preorder: to the tree's layout)
+        from .hierarchy import tree_rows
+
+        pre = tree_rows(tree.n_surfels, small)
+        stored = pre >= 0
+        moved = np.empty_like(out)
+        moved[tree.rows[stored]] = out[pre[stored]]
+        out = moved
     min_leaf_geo_keep(tree, surfels, out, small)
     return out
 

@@ -134,6 +134,11 @@ class Hierarchy:
     color_detail: np.ndarray
     fingerprint: str
     small: int = 1
+    # the blocked layout of a stored model (``blocked``, ``io.model_file``): None, or (K,)
+    # int32, each stored row's first stored child's row (-1: none); block_levels its blocks'
+    # depth (0: rows in preorder, the in-memory layout)
+    child: np.ndarray | None = None
+    block_levels: int = 0
 
     def __len__(self) -> int:
         return 2 * self.n_surfels - 1
@@ -168,8 +173,31 @@ class Hierarchy:
         stores none (``tree_rows``)."""
         rows = self.__dict__.get("_rows")
         if rows is None:
-            rows = self.__dict__["_rows"] = tree_rows(self.n_surfels, self.small)
+            rows = tree_rows(self.n_surfels, self.small)
+            if self.block_levels:
+                rows = blocked_rows(rows, self.n_surfels, self.small, self.child,
+                                    self.block_levels)
+            self.__dict__["_rows"] = rows
         return rows
+
+    def blocked(self, levels: int = 8) -> tuple["Hierarchy", np.ndarray]:
+        """(the tree with its rows in the blocked layout, file_row): the same nodes, each
+        stored row moved to file_row[its preorder row] (``blocked_layout``: blocks of
+        ``levels`` levels, breadth first within a block, the blocks in preorder), and
+        ``child`` set, so that a cut that stops in a block reads the block's first rows,
+        not rows spread over the whole tree (docs/outofcore.md)."""
+        if self.block_levels:
+            raise ValueError("the tree is in the blocked layout already")
+        k = len(self.center)
+        file_row = np.empty(k, np.int64)
+        child = np.empty(k, np.int32)
+        blocked_layout(self.n_surfels, self.small, levels, file_row, child)
+        moved = {name: np.empty_like(getattr(self, name)) for name in ATTRIBUTES}
+        for name in ATTRIBUTES:
+            moved[name][file_row] = getattr(self, name)
+        tree = Hierarchy(order=self.order, fingerprint=self.fingerprint, small=self.small,
+                         child=child, block_levels=levels, **moved)
+        return tree, file_row
 
     def row(self, node):
         """The row of node(s) ``node`` in the attribute arrays (-1: not stored)."""
@@ -895,6 +923,121 @@ def stored_nodes(m, small):
                 b += n_q1
         q, n_q, n_q1 = h, a, b
     return total
+
+
+@numba.njit(cache=True, nogil=True)
+def blocked_layout(n_surfels, small, levels, file_row, child):
+    """The blocked layout of a tree's stored rows (``Hierarchy.blocked``): file_row[r] = the
+    row in the layout of the stored node whose preorder row is r; child[f] = the layout row
+    of the first stored child of the node at layout row f, -1 for none.
+
+    Blocks: the stored nodes at depths [b levels, (b + 1) levels) below one at depth
+    b levels (a block root). Within a block the nodes are breadth first (a node's two
+    children next to each other); each block is followed by its child blocks' subtrees, left
+    to right (the blocks in preorder), so a subtree of m surfels is a run of
+    ``stored_nodes(m, small)`` rows from its block root's. The walk's rule follows
+    (``child_rows``): a node's children are child[f] and, where both are stored, child[f]
+    + 1 within a block or child[f] + stored_nodes(m // 2, small) across a block's edge."""
+    width = 1 << levels
+    # block roots still to lay out: node, first leaf, count, preorder row, depth, the
+    # parent's layout row (-1: none) and whether the root is the parent's first stored child
+    blocks = np.empty((64 * width, 7), np.int64)
+    queue = np.empty((width, 5), np.int64)  # a block's nodes, breadth first
+    roots = np.empty((width, 7), np.int64)  # its child blocks, left to right
+    n_blocks = 0
+    if n_surfels > small:
+        blocks[0, 0], blocks[0, 1], blocks[0, 2], blocks[0, 3] = 0, 0, n_surfels, 0
+        blocks[0, 4], blocks[0, 5], blocks[0, 6] = 0, -1, 0
+        n_blocks = 1
+    next_row = 0
+    while n_blocks > 0:
+        n_blocks -= 1
+        base = next_row
+        if blocks[n_blocks, 5] >= 0 and blocks[n_blocks, 6]:
+            child[blocks[n_blocks, 5]] = base
+        bottom = blocks[n_blocks, 4] + levels - 1  # the block's last depth
+        for c in range(5):
+            queue[0, c] = blocks[n_blocks, c]
+        head, tail, n_roots = 0, 1, 0
+        while head < tail:
+            i, s, m, r, d = queue[head, 0], queue[head, 1], queue[head, 2], queue[head, 3], \
+                queue[head, 4]
+            row = base + head
+            head += 1
+            file_row[r] = row
+            child[row] = -1
+            h = m // 2
+            # the children: (node, first leaf, count, preorder row), stored ones only
+            first = True
+            for side in range(2):
+                if side == 0:
+                    ci, cs, cm, cr = i + 1, s, h, r + 1
+                else:
+                    ci, cs, cm, cr = i + 2 * h, s + h, m - h, r + 1 + stored_nodes(h, small)
+                if cm <= small:
+                    continue
+                if d < bottom:  # in this block, breadth first
+                    if first:
+                        child[row] = base + tail
+                    queue[tail, 0], queue[tail, 1], queue[tail, 2] = ci, cs, cm
+                    queue[tail, 3], queue[tail, 4] = cr, d + 1
+                    tail += 1
+                else:  # a child block's root
+                    roots[n_roots, 0], roots[n_roots, 1], roots[n_roots, 2] = ci, cs, cm
+                    roots[n_roots, 3], roots[n_roots, 4] = cr, d + 1
+                    roots[n_roots, 5], roots[n_roots, 6] = row, 1 if first else 0
+                    n_roots += 1
+                first = False
+        next_row = base + tail
+        for j in range(n_roots - 1, -1, -1):  # the leftmost on top: laid out first
+            for c in range(7):
+                blocks[n_blocks, c] = roots[j, c]
+            n_blocks += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def blocked_rows(rows, n_surfels, small, child, levels):
+    """``tree_rows``' preorder rows (every node's, -1 where not stored) moved to a blocked
+    layout's (``blocked_layout``), by a walk that follows ``child_rows``."""
+    out = np.full(rows.shape[0], -1, np.int32)
+    if n_surfels <= small:
+        return out
+    stack = np.empty((128, 5), np.int64)  # node, count, depth, layout row, preorder row
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3], stack[0, 4] = 0, n_surfels, 0, 0, 0
+    top = 1
+    while top > 0:
+        top -= 1
+        i, m, d, f, r = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], \
+            stack[top, 4]
+        if m <= small:
+            continue
+        out[i] = f
+        h = m // 2
+        left, right = child_rows(f, m, d, small, child, levels)
+        stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3] = i + 2 * h, m - h, d + 1, right
+        stack[top, 4] = r + 1 + stored_nodes(h, small)
+        stack[top + 1, 0], stack[top + 1, 1], stack[top + 1, 2] = i + 1, h, d + 1
+        stack[top + 1, 3], stack[top + 1, 4] = left, r + 1
+        top += 2
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def child_rows(r, m, d, small, child, levels):
+    """(left, right): the rows of the children of the stored node at row r (m surfels, depth
+    d): in preorder (``child`` empty) r + 1 and r + 1 + the left subtree's stored nodes; in
+    a blocked layout (``blocked_layout``) child[r], and child[r] + 1 within a block or + the
+    left subtree's stored nodes across a block's edge. A child the tree does not store
+    (``small``) gets a row that is never read."""
+    h = m // 2
+    if child.shape[0] == 0:
+        return r + 1, r + 1 + stored_nodes(h, small)
+    c = np.int64(child[r])
+    if h <= small:  # (only the right child can be stored)
+        return c, c
+    if (d + 1) % levels != 0:
+        return c, c + 1
+    return c, c + stored_nodes(h, small)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -43,8 +43,8 @@ import math
 from ..jit import numba
 import numpy as np
 
-from .hierarchy import (SMALL_NODE, V_COLOR_GRAD, attribute_rows, node_height, push_children,
-                        small_node, store_attributes, stored_nodes)
+from .hierarchy import (SMALL_NODE, V_COLOR_GRAD, attribute_rows, child_rows, node_height,
+                        push_children, small_node, store_attributes, stored_nodes)
 from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigenvalue,
                          screen_lod_variance, shared, shared_inline, tangent_from_normal)
 
@@ -241,13 +241,13 @@ def subtree_min_geo(n_surfels, small, order, ru, rv, out):
 
 @numba.njit(cache=True, nogil=True)
 def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_depth, tree,
-          small, model, min_geo, a_min, view, ax, bx, ay, by, near, width, height, coc_k,
-          inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces, flags, pending,
-          n_pending):
+          small, child, levels, model, min_geo, a_min, view, ax, bx, ay, by, near, width,
+          height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces,
+          flags, pending, n_pending):
     """Depth-first walk of the subtree at node ``root`` (its first leaf, count and row
     given): flags each node visited (SELECT, CULL, DESCEND or LEAVES + m); nodes deeper
     than max_depth that need a visit are appended to ``pending`` (rows of node, first leaf,
-    count, row, leaves) instead. Returns the new n_pending.
+    count, row, leaves, depth) instead. Returns the new n_pending.
 
     In a frame without blur (coc_k <= 0), in the subtree of a stored node that cannot hold a
     node of the pixel stop (``leaves_below``; min_geo: ``subtree_min_geo``'s rows, a_min:
@@ -260,8 +260,9 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
     ``small_node`` reads for a node of at most ``small`` surfels (``Hierarchy.small``),
     which the tree does not store. A node's first leaf s and count m come down from its parent (left
     child: s, m // 2; right child: s + m // 2, m - m // 2; the tree's shape depends on N
-    alone), and so does a stored node's row (left child: the parent's + 1; right child:
-    that + the left subtree's stored nodes)."""
+    alone), and so does a stored node's row (``hierarchy.child_rows``: in preorder, the left
+    child's the parent's + 1, the right child's that + the left subtree's stored nodes; in a
+    blocked layout, ``child`` and ``levels`` say, ``Hierarchy.blocked``)."""
     center, bound, extent, position, normal, cone, sigma_r2, lod_cov, color_detail = tree
     order, positions, normals, ru, rv, weight, colors, alpha = model
     # where a small node is put to be visited as a stored row (row 0)
@@ -285,6 +286,7 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
             pending[n_pending, 2] = m
             pending[n_pending, 3] = r
             pending[n_pending, 4] = leaves
+            pending[n_pending, 5] = d
             n_pending += 1
             continue
         if m == 1:
@@ -313,10 +315,11 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
                               color_tol, min_node, cull_backfaces, True)
         flags[i] = what
         if what == DESCEND:
+            left, right = child_rows(r, m, d, small, child, levels)
             stack[top, 3] = d + 1
             stack[top + 1, 3] = d + 1
-            stack[top + 1, 4] = r + 1  # the left child (pushed second)
-            stack[top, 4] = r + 1 + stored_nodes(m // 2, small)
+            stack[top + 1, 4] = left  # (pushed second)
+            stack[top, 4] = right
             stack[top, 5] = leaves
             stack[top + 1, 5] = leaves
             top = push_children(stack, top, i, s, m)
@@ -324,36 +327,38 @@ def _walk(root, root_start, root_count, root_row, root_leaves, root_depth, max_d
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def select_nodes(n_surfels, tree, small, model, min_geo, a_min, view, ax, bx, ay, by, near,
-                 width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
-                 cull_backfaces, flags):
+def select_nodes(n_surfels, tree, small, child, levels, model, min_geo, a_min, view, ax, bx,
+                 ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol,
+                 min_node, cull_backfaces, flags):
     """Set flags[i] = SELECT for every node of the cut, CULL for a culled node, DESCEND for a
     node whose children were visited, LEAVES + m for a node of m surfels whose cut is its
     leaves, found without visiting them (the pinhole walk, ``_walk``), and 0 for the rest
     (below a selected, culled or LEAVES node). ``cut_nodes`` reads the cut from the flags.
 
     tree: the hierarchy's (center, bound, extent, position, normal, cone, sigma_r2,
-    lod_cov, color_detail), and its ``small``; model: the surfels' (order (the tree's), positions,
+    lod_cov, color_detail), its ``small``, and its layout (``child``, empty in preorder, and
+    ``block_levels``: ``_walk``); model: the surfels' (order (the tree's), positions,
     normals, r_u, r_v, weight, colors, opacity), for the nodes the tree does not store
     (``small_node``); min_geo, a_min: the pinhole frame's walk to the leaves (``_walk``;
     a_min = 0: every node visited)."""
     flags[:] = 0
-    pending = np.empty((1 << (SPLIT_DEPTH + 1), 5), np.int64)
+    pending = np.empty((1 << (SPLIT_DEPTH + 1), 6), np.int64)
     # both calls pass the same types (no literal constants, which numba compiles a
     # specialisation for): one _walk to compile, not two
     zero = np.int64(0)
     pending[0, :] = 0
     pending[0, 2] = n_surfels
     n_pending = _walk(pending[0, 0], pending[0, 1], pending[0, 2], pending[0, 3], pending[0, 4],
-                      zero, np.int64(SPLIT_DEPTH - 1), tree, small, model, min_geo, a_min, view,
-                      ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
-                      color_tol, min_node, cull_backfaces, flags, pending, zero)
-    dummy = np.empty((1, 5), np.int64)
+                      zero, np.int64(SPLIT_DEPTH - 1), tree, small, child, levels, model,
+                      min_geo, a_min, view, ax, bx, ay, by, near, width, height, coc_k,
+                      inv_focus, cutoff, thr2, kappa, color_tol, min_node, cull_backfaces,
+                      flags, pending, zero)
+    dummy = np.empty((1, 6), np.int64)
     for t in numba.prange(n_pending):
-        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], pending[t, 4], zero,
-              np.int64(STACK), tree, small, model, min_geo, a_min, view, ax, bx, ay, by, near,
-              width, height, coc_k, inv_focus, cutoff, thr2, kappa, color_tol, min_node,
-              cull_backfaces, flags, dummy, zero)
+        _walk(pending[t, 0], pending[t, 1], pending[t, 2], pending[t, 3], pending[t, 4],
+              pending[t, 5], np.int64(STACK), tree, small, child, levels, model, min_geo, a_min,
+              view, ax, bx, ay, by, near, width, height, coc_k, inv_focus, cutoff, thr2, kappa,
+              color_tol, min_node, cull_backfaces, flags, dummy, zero)
 
 
 # cut_nodes reads the flags in at most this many runs of at least CUT_RUN nodes, in
@@ -362,16 +367,21 @@ CUT_RUNS = 64
 CUT_RUN = 16384
 
 
-def cut_nodes(flags, n_surfels, small):
+def cut_nodes(flags, n_surfels, small, child=None, levels=0):
     """The selected nodes in preorder, with each one's first leaf, count and row: (nodes
     (S,) int32, start (S,) int32, count (S,) int32, row (S,) int32: the node's row in the
     tree's attribute arrays, -1 where it stores none: ``small``), from ``select_nodes``' flags
-    (``cut_runs``, in runs of CUT_RUN nodes and more)."""
-    return cut_runs(flags, n_surfels, small, min(max(flags.shape[0] // CUT_RUN, 1), CUT_RUNS))
+    (``cut_runs``, in runs of CUT_RUN nodes and more). child, levels: the tree's layout
+    (``Hierarchy.child``, ``block_levels``; None: preorder)."""
+    return cut_runs(flags, n_surfels, small, NO_CHILD if child is None else child, levels,
+                    min(max(flags.shape[0] // CUT_RUN, 1), CUT_RUNS))
+
+
+NO_CHILD = np.zeros(0, np.int32)  # the preorder layout's (``hierarchy.child_rows``)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def cut_runs(flags, n_surfels, small, runs):
+def cut_runs(flags, n_surfels, small, child, levels, runs):
     """``cut_nodes`` with the flags cut into ``runs`` runs of node numbers, in parallel. A
     node's subtree is a run of numbers (preorder: node i of m surfels and its subtree are
     i .. i + 2m - 2), so the selected nodes, in preorder, are those flagged SELECT and the m
@@ -398,25 +408,27 @@ def cut_runs(flags, n_surfels, small, runs):
     count = np.empty(total, np.int32)
     row = np.empty(total, np.int32)
     for c in numba.prange(runs):
-        cut_run(flags, n_surfels, small, c * n // runs, (c + 1) * n // runs, first[c], nodes,
-                start, count, row)
+        cut_run(flags, n_surfels, small, child, levels, c * n // runs, (c + 1) * n // runs,
+                first[c], nodes, start, count, row)
     return nodes, start, count, row
 
 
 @numba.njit(cache=True, nogil=True)
-def cut_run(flags, n_surfels, small, lo, hi, t, nodes, start, count, row):
+def cut_run(flags, n_surfels, small, child, levels, lo, hi, t, nodes, start, count, row):
     """The selected nodes numbered lo .. hi - 1, and the leaves of the LEAVES nodes
     numbered so, in preorder, into slots t, t + 1, ... of ``cut_runs``' arrays: a walk of
     the visited part of the tree that skips the subtrees numbered wholly outside the run."""
-    stack = np.empty((STACK, 4), np.int64)
+    stack = np.empty((STACK, 5), np.int64)  # node, first leaf, count, row, depth
     stack[0, 0] = 0
     stack[0, 1] = 0
     stack[0, 2] = n_surfels
     stack[0, 3] = 0
+    stack[0, 4] = 0
     top = 1
     while top > 0:
         top -= 1
-        i, s, m, r = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        i, s, m, r, d = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3], \
+            stack[top, 4]
         if i >= hi or i + 2 * m - 1 <= lo:
             continue  # the subtree's numbers i .. i + 2m - 2 miss the run
         f = flags[i]
@@ -443,8 +455,11 @@ def cut_run(flags, n_surfels, small, lo, hi, t, nodes, start, count, row):
                     else:
                         top = push_children(stack, top, j, sj, mj)
         elif f == DESCEND:
-            stack[top + 1, 3] = r + 1
-            stack[top, 3] = r + 1 + stored_nodes(m // 2, small)
+            left, right = child_rows(r, m, d, small, child, levels)
+            stack[top + 1, 3] = left
+            stack[top, 3] = right
+            stack[top, 4] = d + 1
+            stack[top + 1, 4] = d + 1
             top = push_children(stack, top, i, s, m)
 
 
