@@ -4,7 +4,7 @@ numba's CUDA simulator runs kernels as Python, so it never types them: a kernel 
 simulator runs can still fail to compile for a GPU. This script
 
 1. renders a few tiny frames under the simulator (in a child process) and records the
-   numba argument types of every kernel launch;
+   numba argument types of every kernel launch (a kernel that none of them launches fails);
 2. compiles each kernel for those types to PTX with numba-cuda's NVVM (``cuda.compile_ptx``;
    nested device functions are compiled for --cc, since there is no device to ask).
 
@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def record(path: Path) -> None:
-    """(Under the simulator.) Render tiny frames; pickle {kernel name: [argument types]}."""
+    """(Under the simulator.) Render tiny frames; pickle ({kernel name: [argument types]},
+    every kernel's name)."""
     import numba
     import numpy as np
 
@@ -37,6 +38,7 @@ def record(path: Path) -> None:
     from dofsplat.backends import cuda_gauss as bg
 
     sigs: dict[str, set] = {}
+    kernels: list[str] = []
 
     class Recorder:
         def __init__(self, name, kernel):
@@ -57,6 +59,7 @@ def record(path: Path) -> None:
             if type(obj).__name__ == "FakeCUDAKernel" and not getattr(obj, "_device", False) \
                     and obj.fn.__module__ == module.__name__:
                 setattr(module, name, Recorder(f"{module.__name__}.{name}", obj))
+                kernels.append(f"{module.__name__}.{name}")
 
     n = 6
     g = (np.arange(n) - (n - 1) / 2) / n
@@ -76,15 +79,24 @@ def record(path: Path) -> None:
     bc.render_frame(disks, camera, lens, ds.RenderSettings(lens_samples=4))  # _accumulate
     x = np.arange(3000, dtype=np.uint8)  # a scan deep enough for _scan_add
     bc.exclusive_scan(bc._upload(x), x.size, bc.cuda.device_array(x.size + 1, np.int64))
-    rng = np.random.default_rng(1)  # a Gaussian scene: pinhole, and the default frame
+    # a Gaussian scene: the pinhole, the default frame (the lens in layers, coarse ones too:
+    # a blur of up to 5 px), and the parts drawn whole (cpu_gauss.LAYERS off)
+    from dataclasses import replace
+
+    from dofsplat.backends import cpu_gauss
+
+    rng = np.random.default_rng(1)
     gaussians = ds.Gaussians(positions=rng.uniform(-0.5, 0.5, (20, 3)),
                              scales=rng.uniform(0.02, 0.1, (20, 3)),
                              rotations=rng.normal(size=(20, 4)), opacity=np.full(20, 0.8),
                              sh=rng.normal(0, 0.3, (20, 4, 3)))
-    for g_lens in (None, lens):
-        bg.render_gaussians_cuda(gaussians, camera, g_lens, ds.RenderSettings(device="cuda"))
+    g_lens = ds.ThinLens(focus_distance=2.0, aperture=3.0)
+    for frame_lens in (None, g_lens):
+        bg.render_gaussians_cuda(gaussians, camera, frame_lens, ds.RenderSettings(device="cuda"))
+    cpu_gauss.LAYERS = replace(cpu_gauss.LAYERS, enabled=False)
+    bg.render_gaussians_cuda(gaussians, camera, g_lens, ds.RenderSettings(device="cuda"))
     with open(path, "wb") as f:
-        pickle.dump({k: sorted(v, key=str) for k, v in sigs.items()}, f)
+        pickle.dump(({k: sorted(v, key=str) for k, v in sigs.items()}, kernels), f)
 
 
 def compile_all(path: Path, cc: tuple[int, int]) -> int:
@@ -100,9 +112,12 @@ def compile_all(path: Path, cc: tuple[int, int]) -> int:
     import importlib
 
     with open(path, "rb") as f:
-        sigs = pickle.load(f)
+        sigs, kernels = pickle.load(f)
     sigs["dofsplat.backends.cuda.probe_kernel"] = [(numba.types.Array(numba.float64, 1, "C"),)]
     failures = 0
+    for name in sorted(set(kernels) - set(sigs)):
+        failures += 1
+        print(f"FAIL  {name}: no frame of --record launched it (add one)")
     for name in sorted(sigs):
         module, _, kernel = name.rpartition(".")
         for types in sigs[name]:

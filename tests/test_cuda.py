@@ -398,27 +398,46 @@ def _assert_same_gaussian_frame(cpu, gpu):
 @needs_cuda
 @pytest.mark.parametrize("aperture, settings", [
     (0.0, {}),
-    (0.3, {}),  # the default frame: 4 lens parts, LOD, lens visibility
+    # the default frame: 4 lens parts in layers, LOD, lens visibility by shifts; a blur of
+    # up to 5 px at 32 x 24 (20 at 128 x 96), so that the layers include coarse ones on
+    # either side of the focus and an in-focus slab (at 0.3 all is the in-focus slab)
+    (3.0, {}),
     (0.3, {"gaussian_blur": "viewers"}),
     (0.3, {"gaussian_lod": False, "gaussian_lens_samples": 1, "gaussian_antialiased": True}),
 ], ids=["pinhole", "default", "viewers", "one-pass-antialiased"])
-def test_gaussian_frame_matches_cpu(aperture, settings, monkeypatch):
+def test_gaussian_frame_matches_cpu(aperture, settings):
     """A Gaussian scene's frame on both devices: the pinhole, the default frame through a
-    lens (which launches every kernel of backends/cuda_gauss.py), the viewers' blur, and one
-    pass with gsplat's antialiased opacity. The GPU draws each part of the lens whole, as
-    the CPU does with its layers off (``cpu_gauss.LAYERS``; the layered frame against that
-    one: test_gaussians.py)."""
+    lens (the lens in layers, ``cpu_gauss.LAYERS``: with the stage tests it launches every
+    kernel of backends/cuda_gauss.py but the parts drawn whole's), the viewers' blur, and
+    one pass with gsplat's antialiased opacity."""
+    scene, camera = _gaussians(), _gaussian_camera()
+    lens = ds.ThinLens(focus_distance=2.5, aperture=aperture) if aperture else None
+    cpu = ds.render(scene, camera, lens, ds.RenderSettings(**settings))
+    gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda", **settings))
+    assert gpu.stats["device"] == "cuda"
+    assert cpu.stats["splats_rendered"] > 0 and np.ptp(cpu.image[..., :3]) > 0.1
+    if "layers" in cpu.stats:  # the images of the in-focus slab and each part's layers
+        assert cpu.stats["layers"] >= 9 and gpu.stats["layers"] == cpu.stats["layers"]
+    _assert_same_gaussian_frame(cpu, gpu)
+
+
+@needs_cuda
+def test_gaussian_frame_without_layers_matches_cpu(monkeypatch):
+    """``cpu_gauss.LAYERS`` off, read at the call on both devices: each part of the lens
+    drawn whole, with ``lens_visibility`` (at 16 x 12 in the simulator: 4 parts of one tile,
+    the cheapest frame that launches the kernels of the parts drawn whole)."""
     import dataclasses
 
     from dofsplat.backends import cpu_gauss
 
     monkeypatch.setattr(cpu_gauss, "LAYERS", dataclasses.replace(cpu_gauss.LAYERS,
                                                                  enabled=False))
-    scene, camera = _gaussians(), _gaussian_camera()
-    lens = ds.ThinLens(focus_distance=2.5, aperture=aperture) if aperture else None
-    cpu = ds.render(scene, camera, lens, ds.RenderSettings(**settings))
-    gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda", **settings))
-    assert gpu.stats["device"] == "cuda"
+    scene, camera = _gaussians(), _gaussian_camera(G_SIZE if GPU else (16, 12))
+    lens = ds.ThinLens(focus_distance=2.5, aperture=3.0)
+    cpu = ds.render(scene, camera, lens, ds.RenderSettings())
+    gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda"))
+    assert "layers" not in cpu.stats and "layers" not in gpu.stats
+    assert gpu.stats["lens_samples"] == 4
     assert cpu.stats["splats_rendered"] > 0 and np.ptp(cpu.image[..., :3]) > 0.1
     _assert_same_gaussian_frame(cpu, gpu)
 
@@ -442,26 +461,110 @@ def test_gaussian_tile_lists_match_cpu():
     d_rows, d_boxes, d_visible = bg.project_cuda(bg.device_gaussians(scene), camera, None,
                                                  settings)
     np.testing.assert_array_equal(d_boxes.copy_to_host()[visible], boxes[visible])
-    g_offsets, keys, totals = bg.bin_cuda(d_rows, d_boxes, d_visible, camera.width,
-                                          camera.height)
+    g_offsets, keys, totals = bg.bin_cuda(bg.one_image(camera.width, camera.height, len(scene)),
+                                          d_rows, d_boxes, d_visible)
     np.testing.assert_array_equal(g_offsets.copy_to_host(), offsets)
     np.testing.assert_array_equal(keys.copy_to_host() & bg.INDEX_MASK, ids)
     assert totals[:2] == [len(ids), np.count_nonzero(visible)]
 
 
 @needs_cuda
-def test_gaussian_lens_visibility_matches_cpu():
-    """The lens visibility of the default frame's Gaussians, on both devices: the same
-    shares, but for float rounding of the seen sums (added in another order on the GPU).
-    At 32 x 24 pixels on every machine: 21 % of these Gaussians are seen less than wholly
-    there (at 128 x 96, none)."""
+def test_gaussian_layers_match_cpu():
+    """A layered frame's stages on both devices, from the same plan: every projection moved
+    onto its image (``project_layers``), the rows listed per tile of every image in memory
+    order (``bin_images``: nearest first within a layer; 16 x 12 in the simulator, a blur of
+    up to 5 px there: images of scale 1 and 2 with margins)."""
     from dofsplat.backends import cuda_gauss as bg
-    from dofsplat.backends.cpu_gauss import lens_visibility
+    from dofsplat.backends.cpu_gauss import NO_SHARE, in_layers
+    from dofsplat.frame import lens_parts
+    from dofsplat.gauss.layers import IM_ROW0, IM_ROW1, IM_SCALE, bin_images, project_layers
+    from dofsplat.gauss.project import N_FIELDS
+
+    camera = _gaussian_camera(G_SIZE if GPU else (16, 12))
+    lens = ds.ThinLens(focus_distance=2.5, aperture=6.0)
+    settings = ds.RenderSettings()
+    parts = lens_parts(camera, lens, replace(settings, lens_samples=4))
+    scene, layers = in_layers(_gaussians(), camera, lens, parts, settings, lod=False)
+    views, campos, cameras, spans, table, _ = bg.layer_plan(len(scene), layers, camera, lens,
+                                                            parts, settings)
+    assert len(table) >= 9 and set(table[:, IM_SCALE]) >= {1, 2}
+    n_rows = int(np.sum(spans[:, 1] - spans[:, 0]))
+    row_image = np.repeat(np.arange(len(table), dtype=np.int32),
+                          table[:, IM_ROW1] - table[:, IM_ROW0])
+    rows = np.empty((n_rows, N_FIELDS), np.float32)
+    boxes = np.zeros((n_rows, 4), np.int32)
+    visible = np.zeros(n_rows, np.bool_)
+    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
+                   NO_SHARE, views, campos, cameras, spans, False, table, row_image, rows, boxes,
+                   visible)
+    offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
+                                          visible)
+
+    images = bg.device_images(table)
+    np.testing.assert_array_equal(images.tile_image.copy_to_host(), tile_image)
+    np.testing.assert_array_equal(images.row_image.copy_to_host(), row_image)
+    d_rows = bg.cuda.device_array((n_rows, N_FIELDS), np.float32)
+    d_boxes = bg.cuda.to_device(np.zeros((n_rows, 4), np.int32))
+    d_visible = bg.cuda.device_array(n_rows, np.bool_)
+    arrays = bg.device_gaussians(scene)
+    bg._project_layers[bg._blocks(n_rows), bg.THREADS](
+        arrays["positions"], arrays["scales"], arrays["rotations"], arrays["opacity"],
+        arrays["sh"], bg.cuda.to_device(NO_SHARE), bg._upload(views), bg._upload(campos),
+        bg._upload(cameras), bg._upload(spans), False, images.table, images.row_image, d_rows,
+        d_boxes, d_visible)
+    np.testing.assert_array_equal(d_visible.copy_to_host(), visible)
+    np.testing.assert_array_equal(d_boxes.copy_to_host(), boxes)
+    # libdevice's exp, sqrt and log against libm's: float32 rounding
+    np.testing.assert_allclose(d_rows.copy_to_host()[visible], rows[visible], rtol=1e-5,
+                               atol=1e-6)
+    g_offsets, keys, totals = bg.bin_cuda(images, d_rows, d_boxes, d_visible, by_depth=False)
+    np.testing.assert_array_equal(g_offsets.copy_to_host(), offsets)
+    np.testing.assert_array_equal(keys.copy_to_host() & bg.INDEX_MASK, ids)
+    assert totals[:2] == [len(ids), np.count_nonzero(visible)]
+
+
+@needs_cuda
+def test_gaussian_live_tiles_match_cpu():
+    """``live_tiles`` on both devices, for images of 1 x 1 to 6 x 5 tiles whose tiles list
+    a Gaussian or none at random: a tile is live where it or a neighbour in its image does."""
+    from dofsplat.backends import cuda_gauss as bg
+    from dofsplat.gauss.layers import image_table, live_tiles
+
+    rng = np.random.default_rng(4)
+    table = image_table([(w, h, 1, 0, 0, 0) for w, h in ((90, 70), (16, 16), (40, 20),
+                                                          (20, 75))])
+    images = bg.device_images(table)
+    counts = rng.integers(0, 3, images.n_tiles) * (rng.random(images.n_tiles) < 0.15)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    expected = live_tiles(offsets, table, images.tile_image.copy_to_host())
+    assert 0 < expected.sum() < len(expected)  # some tiles are not live: the test bites
+    live = bg.cuda.to_device(np.zeros(images.n_tiles, np.bool_))
+    bg._live_tiles[bg._blocks(images.n_tiles), bg.THREADS](bg._upload(offsets), images.table,
+                                                           images.tile_image, live)
+    np.testing.assert_array_equal(live.copy_to_host(), expected)
+
+
+@needs_cuda
+@pytest.mark.parametrize("by_shifts", [False, True], ids=["whole", "by-shifts"])
+def test_gaussian_lens_visibility_matches_cpu(by_shifts):
+    """The lens visibility of the default frame's Gaussians, on both devices
+    (``lens_visibility``, the parts drawn whole's, or ``lens_visibility_by_shifts``, the
+    layers'): the same shares, but for float rounding of the seen sums (added in another
+    order on the GPU). At 32 x 24 pixels on every machine: 21 % and 23 % of these Gaussians
+    are seen less than wholly there (at 128 x 96, none)."""
+    from dofsplat.backends import cuda_gauss as bg
+    from dofsplat.backends.cpu_gauss import lens_visibility, lens_visibility_by_shifts
 
     scene, camera = _gaussians(n=120), _gaussian_camera((32, 24))
     lens, settings = ds.ThinLens(focus_distance=2.5, aperture=0.3), ds.RenderSettings()
-    cpu = lens_visibility(scene, camera, lens, settings)
-    gpu = bg.lens_visibility_cuda(bg.device_gaussians(scene), camera, lens, settings)
+    arrays = bg.device_gaussians(scene)
+    if by_shifts:
+        cpu = lens_visibility_by_shifts(scene, camera, lens, settings)
+        gpu = bg.lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens,
+                                                settings)
+    else:
+        cpu = lens_visibility(scene, camera, lens, settings)
+        gpu = bg.lens_visibility_cuda(arrays, camera, lens, settings)
     assert cpu.min() < 0.5 and cpu.max() == 1.0  # some mostly hidden: the test bites
     np.testing.assert_allclose(gpu.copy_to_host(), cpu, atol=1e-5)
 
@@ -486,7 +589,7 @@ def test_every_kernel_was_launched():
     from dofsplat.backends import cuda_gauss as bg
 
     kernels = {f"{m.__name__}.{k}" for m in (bc, bg) for k in _kernel_names(m)}
-    assert len(kernels) >= 24  # the parse found them (20 + 7 in November 2026)
+    assert len(kernels) >= 33  # the parse found them (20 + 13 with the layers on the GPU)
     assert not kernels - LAUNCHED, sorted(kernels - LAUNCHED)
 
 

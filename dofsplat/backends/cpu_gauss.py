@@ -208,7 +208,57 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     stats = {}
     t = time.perf_counter()
     h, w = camera.height, camera.width
-    n = len(scene)
+    views, campos, cameras, spans, table, part_layers = layer_plan(len(scene), layers, camera,
+                                                                   lens, parts, settings)
+    if not len(table):  # nothing in front of the camera
+        empty = np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32)
+        return (to_linear_rgba(*empty, settings.background), np.full((h, w), np.inf, np.float32),
+                {"splats_rendered": 0, "fragments": 0, "layers": 0})
+    n_rows = int(np.sum(spans[:, 1] - spans[:, 0]))
+    row_image = np.repeat(np.arange(len(table), dtype=np.int32),
+                          table[:, IM_ROW1] - table[:, IM_ROW0])
+    rows = np.empty((n_rows, N_FIELDS), np.float32)
+    boxes = np.zeros((n_rows, 4), np.int32)
+    visible = np.zeros(n_rows, np.bool_)
+    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
+                   NO_SHARE if share is None else share, views, campos, cameras, spans,
+                   settings.gaussian_antialiased, table, row_image, rows, boxes, visible)
+    stats["project_ms"] = _ms(t)
+    t = time.perf_counter()
+    offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
+                                          visible)
+    stats["sort_ms"] = _ms(t)
+    t = time.perf_counter()
+    n_px = int(table[-1, IM_PIXEL0] + table[-1, IM_WIDTH] * table[-1, IM_HEIGHT])
+    color = np.empty((n_px, 3), np.float32)
+    trans = np.empty(n_px, np.float32)
+    depth = np.empty(n_px, np.float32)
+    composite_images(rows, boxes, offsets, ids, tile_image, table, color, trans, depth,
+                     NO_SEEN)
+    stats["composite_ms"] = _ms(t)
+    t = time.perf_counter()
+    out_depth = np.empty((h, w), np.float32)
+    image = np.empty((h, w, 4), np.float32)
+    combine_layers(table, live_tiles(offsets, table, tile_image), part_layers, color, trans,
+                   depth, linear_to_srgb(np.asarray(settings.background, np.float64)),
+                   np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
+                   image)
+    stats["combine_ms"] = _ms(t)
+    stats["splats_rendered"] = int(np.count_nonzero(visible))
+    box = boxes[visible].astype(np.int64)
+    stats["fragments"] = int(np.sum((box[:, 1] - box[:, 0]) * (box[:, 3] - box[:, 2])))
+    stats["layers"] = len(table)
+    return image, out_depth, stats
+
+
+def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: RenderSettings):
+    """What ``draw_layered`` (and the GPU's) projects and composites for a frame of n
+    Gaussians in ``layer_order``: (views (J, 4, 4), campos (J, 3), cameras (J, N_P), spans
+    (J, 3) int64: the projections, each (first Gaussian, last, first row); table (I, N_IM):
+    the images; part_layers (K, L) int64: each part's images front to back, -1 after).
+    The sharp slab is projected once, from the lens centre with the whole lens's blur; the
+    other layers from each part's camera with the residual blur."""
+    h, w = camera.height, camera.width
     n_sharp = int(layers.spans[layers.sharp, 1])
     n_rest = n - n_sharp
     k = len(parts.cameras)
@@ -242,49 +292,9 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
                                margin, r0, r0 + b - a))
                 part_layers[p, col] = len(images) - 1
             col += 1
-    if not images:  # nothing in front of the camera
-        empty = np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32)
-        return (to_linear_rgba(*empty, settings.background), np.full((h, w), np.inf, np.float32),
-                {"splats_rendered": 0, "fragments": 0, "layers": 0})
-    table = image_table(images)
-    n_rows = n_sharp + k * n_rest
-    row_image = np.repeat(np.arange(len(images), dtype=np.int32),
-                          table[:, IM_ROW1] - table[:, IM_ROW0])
-    rows = np.empty((n_rows, N_FIELDS), np.float32)
-    boxes = np.zeros((n_rows, 4), np.int32)
-    visible = np.zeros(n_rows, np.bool_)
-    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
-                   NO_SHARE if share is None else share,
-                   np.stack([view_matrix(job[0]) for job in jobs]),
-                   np.array([job[0].eye for job in jobs], np.float64), cameras,
-                   np.array([job[2:] for job in jobs], np.int64), settings.gaussian_antialiased,
-                   table, row_image, rows, boxes, visible)
-    stats["project_ms"] = _ms(t)
-    t = time.perf_counter()
-    offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
-                                          visible)
-    stats["sort_ms"] = _ms(t)
-    t = time.perf_counter()
-    n_px = int(table[-1, IM_PIXEL0] + table[-1, IM_WIDTH] * table[-1, IM_HEIGHT])
-    color = np.empty((n_px, 3), np.float32)
-    trans = np.empty(n_px, np.float32)
-    depth = np.empty(n_px, np.float32)
-    composite_images(rows, boxes, offsets, ids, tile_image, table, color, trans, depth,
-                     NO_SEEN)
-    stats["composite_ms"] = _ms(t)
-    t = time.perf_counter()
-    out_depth = np.empty((h, w), np.float32)
-    image = np.empty((h, w, 4), np.float32)
-    combine_layers(table, live_tiles(offsets, table, tile_image), part_layers, color, trans,
-                   depth, linear_to_srgb(np.asarray(settings.background, np.float64)),
-                   np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
-                   image)
-    stats["combine_ms"] = _ms(t)
-    stats["splats_rendered"] = int(np.count_nonzero(visible))
-    box = boxes[visible].astype(np.int64)
-    stats["fragments"] = int(np.sum((box[:, 1] - box[:, 0]) * (box[:, 3] - box[:, 2])))
-    stats["layers"] = len(images)
-    return image, out_depth, stats
+    return (np.stack([view_matrix(job[0]) for job in jobs]),
+            np.array([job[0].eye for job in jobs], np.float64), cameras,
+            np.array([job[2:] for job in jobs], np.int64), image_table(images), part_layers)
 
 
 def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
@@ -394,23 +404,11 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px)."""
     views = LAYERS.visibility_views if views is None else views
     scale = LAYERS.visibility_scale if scale is None else scale
-    small = replace(camera, width=max(1, camera.width // scale),
-                    height=max(1, camera.height // scale))
+    small, margin, shifts, inv_focus, near, view = shifted_views(scene.positions, camera, lens,
+                                                                 settings, views, scale)
     w, h = small.width, small.height
     n = len(scene)
     fx, fy, cx, cy = intrinsics(small)
-    coc_k, inv_focus = coc_coefficients(small, lens, settings)
-    near = small.near if small.frustum is None else small.frustum[4]
-    view = view_matrix(small)
-    z = np.asarray(scene.positions, np.float64) @ view[2, :3] + view[2, 3]
-    front = z[z > near]
-    reach = coc_k * float(np.max(np.abs(1.0 / front - inv_focus))) if len(front) else 0.0
-    margin = int(math.ceil(min(reach, 0.5 * max(w, h))))
-    radius = 0.5 * effective_diameter(small, lens)
-    angles = 2.0 * math.pi * np.arange(views) / max(views, 1)
-    shifts = np.zeros((views + 1, 2))  # the centre, then the rim
-    shifts[1:, 0] = fx * radius * np.cos(angles)
-    shifts[1:, 1] = -fy * radius * np.sin(angles)
     m = len(shifts)
     rows = np.empty((n, N_FIELDS), np.float32)
     boxes = np.zeros((n, 4), np.int32)
@@ -437,6 +435,32 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     best = np.empty(n, np.float32)
     best_view_shares(view_rows, view_visible, seen, n, best)
     return best
+
+
+def shifted_views(positions: np.ndarray, camera: Camera, lens, settings: RenderSettings,
+                  views: int, scale: int):
+    """The views of ``lens_visibility_by_shifts`` (and the GPU's): (the camera at 1/scale the
+    resolution, margin px, shifts (views + 1, 2): the centre's and the rim's, pixels at
+    1/P - 1/z = 1, inv_focus = 1/P, near, its view matrix (4, 4)). The margin is the
+    largest move of a Gaussian in front of the camera (positions (N, 3)), at most half the
+    image."""
+    small = replace(camera, width=max(1, camera.width // scale),
+                    height=max(1, camera.height // scale))
+    w, h = small.width, small.height
+    fx, fy, _, _ = intrinsics(small)
+    coc_k, inv_focus = coc_coefficients(small, lens, settings)
+    near = small.near if small.frustum is None else small.frustum[4]
+    view = view_matrix(small)
+    z = np.asarray(positions, np.float64) @ view[2, :3] + view[2, 3]
+    front = z[z > near]
+    reach = coc_k * float(np.max(np.abs(1.0 / front - inv_focus))) if len(front) else 0.0
+    margin = int(math.ceil(min(reach, 0.5 * max(w, h))))
+    radius = 0.5 * effective_diameter(small, lens)
+    angles = 2.0 * math.pi * np.arange(views) / max(views, 1)
+    shifts = np.zeros((views + 1, 2))  # the centre, then the rim
+    shifts[1:, 0] = fx * radius * np.cos(angles)
+    shifts[1:, 1] = -fy * radius * np.sin(angles)
+    return small, margin, shifts, inv_focus, near, view
 
 
 def visibility_cameras(camera: Camera, lens, views: int = 6, scale: int = 2) -> list[Camera]:

@@ -232,18 +232,26 @@ def best_view_shares(rows, visible, seen, n, best):
     """best[i] = ``lens_share`` of the largest ``seen_share`` of Gaussian i over V views
     whose rows are stacked (view v's row of it at v n + i; rows (V n, N_FIELDS), visible
     (V n,); seen (threads, V n), summed here): ``keep_best_share`` over the views, then
-    ``finish_shares``."""
-    n_views = rows.shape[0] // max(n, 1)
+    ``finish_shares``. Each Gaussian's is ``best_view_share``'s."""
     for i in numba.prange(n):
-        share = 0.0
-        for v in range(n_views):
-            r = v * n + i
-            if visible[r]:
-                total = 0.0
-                for t in range(seen.shape[0]):
-                    total += seen[t, r]
-                share = max(share, seen_share(rows, r, total))
-        best[i] = lens_share(share)
+        best[i] = best_view_share(rows, visible, seen, n, i)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def best_view_share(rows, visible, seen, n, i):
+    """Gaussian i's ``lens_share`` of its largest ``seen_share`` over the views
+    (``best_view_shares``, which see): the per-Gaussian maths that the CUDA backend compiles
+    as a device function too (its seen: one row, summed by atomics)."""
+    n_views = rows.shape[0] // max(n, 1)
+    share = 0.0
+    for v in range(n_views):
+        r = v * n + i
+        if visible[r]:
+            total = 0.0
+            for t in range(seen.shape[0]):
+                total += seen[t, r]
+            share = max(share, seen_share(rows, r, total))
+    return lens_share(share)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -94,26 +94,36 @@ def project_layers(positions, scales, rotations, opacity, sh, share, views, camp
     spans[j, 1] into rows, boxes and visible from row spans[j, 2] (the projections' rows
     one run after another, covering them all). share: (N,) the lens visibility, or (0,).
     Then row r is moved onto images[row_image[r]] where that image's scale is not 1
-    (``move_footprint``: the same footprint in its pixels)."""
+    (``move_footprint``: the same footprint in its pixels). Each row is
+    ``project_layer_row``'s."""
     for r in numba.prange(rows.shape[0]):
-        j = 0
-        while r >= spans[j, 2] + spans[j, 1] - spans[j, 0]:
-            j += 1
-        a, b, r0 = spans[j, 0], spans[j, 1], spans[j, 2]
-        r1 = r0 + b - a
-        cam = cameras[j]
-        project_gaussian(r - r0, positions[a:b], scales[a:b], rotations[a:b], opacity[a:b],
-                         sh[a:b], views[j], campos[j], cam[P_FX], cam[P_FY], cam[P_CX],
-                         cam[P_CY], int(cam[P_WIDTH]), int(cam[P_HEIGHT]), cam[P_NEAR], 1e10,
-                         EPS2D, antialiased, BLUR_OURS, cam[P_COC_K], cam[P_INV_FOCUS],
-                         cam[P_BLUR_VARIANCE], share[a:b] if share.shape[0] > 0 else share,
-                         rows[r0:r1], boxes[r0:r1], visible[r0:r1])
-        im = row_image[r]
-        scale = images[im, IM_SCALE]
-        if scale != 1:
-            move_footprint(r, r, rows, visible, rows, boxes, visible, 0.0, 0.0, 0.0,
-                           float(scale), float(images[im, IM_MARGIN]), images[im, IM_WIDTH],
-                           images[im, IM_HEIGHT])
+        project_layer_row(r, positions, scales, rotations, opacity, sh, share, views, campos,
+                          cameras, spans, antialiased, images, row_image, rows, boxes, visible)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def project_layer_row(r, positions, scales, rotations, opacity, sh, share, views, campos,
+                      cameras, spans, antialiased, images, row_image, rows, boxes, visible):
+    """Row r of ``project_layers`` (which see): the per-row maths that the CUDA backend
+    compiles as a device function too."""
+    j = 0
+    while r >= spans[j, 2] + spans[j, 1] - spans[j, 0]:
+        j += 1
+    a, b, r0 = spans[j, 0], spans[j, 1], spans[j, 2]
+    r1 = r0 + b - a
+    cam = cameras[j]
+    project_gaussian(r - r0, positions[a:b], scales[a:b], rotations[a:b], opacity[a:b],
+                     sh[a:b], views[j], campos[j], cam[P_FX], cam[P_FY], cam[P_CX],
+                     cam[P_CY], int(cam[P_WIDTH]), int(cam[P_HEIGHT]), cam[P_NEAR], 1e10,
+                     EPS2D, antialiased, BLUR_OURS, cam[P_COC_K], cam[P_INV_FOCUS],
+                     cam[P_BLUR_VARIANCE], share[a:b] if share.shape[0] > 0 else share,
+                     rows[r0:r1], boxes[r0:r1], visible[r0:r1])
+    im = row_image[r]
+    scale = images[im, IM_SCALE]
+    if scale != 1:
+        move_footprint(r, r, rows, visible, rows, boxes, visible, 0.0, 0.0, 0.0,
+                       float(scale), float(images[im, IM_MARGIN]), images[im, IM_WIDTH],
+                       images[im, IM_HEIGHT])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -167,17 +177,24 @@ def live_tiles(offsets, images, tile_image):
     n_tiles = offsets.shape[0] - 1
     live = np.zeros(n_tiles, np.bool_)
     for t in range(n_tiles):
-        if offsets[t + 1] == offsets[t]:
-            continue
-        i = tile_image[t]
-        n_tx = -(-images[i, IM_WIDTH] // TILE)
-        n_ty = -(-images[i, IM_HEIGHT] // TILE)
-        local = t - images[i, IM_TILE0]
-        tx, ty = local % n_tx, local // n_tx
-        for ny in range(max(ty - 1, 0), min(ty + 2, n_ty)):
-            for nx in range(max(tx - 1, 0), min(tx + 2, n_tx)):
-                live[images[i, IM_TILE0] + ny * n_tx + nx] = True
+        mark_live(offsets, images, tile_image, t, live)
     return live
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def mark_live(offsets, images, tile_image, t, live):
+    """``live_tiles``'s step for tile t: where it lists a Gaussian, it and its neighbours in
+    its image are marked live (only ever set True: tiles may be marked in any order)."""
+    if offsets[t + 1] == offsets[t]:
+        return
+    i = tile_image[t]
+    n_tx = -(-images[i, IM_WIDTH] // TILE)
+    n_ty = -(-images[i, IM_HEIGHT] // TILE)
+    local = t - images[i, IM_TILE0]
+    tx, ty = local % n_tx, local // n_tx
+    for ny in range(max(ty - 1, 0), min(ty + 2, n_ty)):
+        for nx in range(max(tx - 1, 0), min(tx + 2, n_tx)):
+            live[images[i, IM_TILE0] + ny * n_tx + nx] = True
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -257,7 +274,8 @@ def over_layer(images, i, color, transmittance, depth, x0, y0, x1, y1, cols, fra
     else bilinear between the four nearest of its pixels (pixel (m, m) of an image of scale
     s and margin m is centred on full-resolution point (s/2, s/2)); d[p] takes the depth
     (the nearest pixel's) where t_acc first falls to 1/2 with d[p] still none. Returns how
-    many pixels fell to MIN_TRANSMITTANCE. cols, fracs: (TILE,) scratch."""
+    many pixels fell to MIN_TRANSMITTANCE. cols, fracs: (TILE,) scratch. Each pixel is
+    ``over_pixel``'s."""
     w = images[i, IM_WIDTH]
     s = images[i, IM_SCALE]
     m = images[i, IM_MARGIN]
@@ -265,54 +283,64 @@ def over_layer(images, i, color, transmittance, depth, x0, y0, x1, y1, cols, fra
     tw = x1 - x0
     inv = 1.0 / s
     for px in range(x0, x1):
-        fx = (px + 0.5) * inv + m - 0.5  # >= 0: a coarse image has a margin
-        cols[px - x0] = int(fx)
-        fracs[px - x0] = fx - int(fx)
+        cols[px - x0], fracs[px - x0] = layer_sample(px, inv, m)
     n_done = 0
     for py in range(y0, y1):
-        fy = (py + 0.5) * inv + m - 0.5
-        row = int(fy)
-        ay = fy - row
+        row, ay = layer_sample(py, inv, m)
         q_row = base + row * w
         for px in range(x0, x1):
-            p = (py - y0) * tw + (px - x0)
-            t = t_acc[p]
-            if t <= MIN_TRANSMITTANCE:
-                continue
-            q = q_row + cols[px - x0]
-            if s == 1:
-                r, g, b, tr, dq = (color[q, 0], color[q, 1], color[q, 2], transmittance[q],
-                                   depth[q])
-            else:
-                ax = fracs[px - x0]
-                w00 = (1.0 - ax) * (1.0 - ay)
-                w01 = ax * (1.0 - ay)
-                w10 = (1.0 - ax) * ay
-                w11 = ax * ay
-                q10 = q + w
-                tr = (w00 * transmittance[q] + w01 * transmittance[q + 1]
-                      + w10 * transmittance[q10] + w11 * transmittance[q10 + 1])
-                if tr == 1.0:
-                    continue  # nothing there
-                r = (w00 * color[q, 0] + w01 * color[q + 1, 0] + w10 * color[q10, 0]
-                     + w11 * color[q10 + 1, 0])
-                g = (w00 * color[q, 1] + w01 * color[q + 1, 1] + w10 * color[q10, 1]
-                     + w11 * color[q10 + 1, 1])
-                b = (w00 * color[q, 2] + w01 * color[q + 1, 2] + w10 * color[q10, 2]
-                     + w11 * color[q10 + 1, 2])
-                dq = depth[q + (w if ay > 0.5 else 0) + (1 if ax > 0.5 else 0)]
-            total[p, 0] += t * r
-            total[p, 1] += t * g
-            total[p, 2] += t * b
-            t_next = t * tr
-            # the depth: where T first falls to 1/2, from the first layer behind that which
-            # has one
-            if t_next <= 0.5 and d[p] == math.inf:
-                d[p] = dq
-            t_acc[p] = t_next
-            if t_next <= MIN_TRANSMITTANCE:
-                n_done += 1
+            n_done += over_pixel(images, i, color, transmittance, depth, q_row + cols[px - x0],
+                                 fracs[px - x0], ay, total, t_acc, d, (py - y0) * tw + (px - x0))
     return n_done
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def layer_sample(x, inv, m):
+    """(first tap, the second tap's weight): where full-resolution pixel x's centre falls
+    on an image of scale 1/inv and margin m, along one axis (``over_layer``)."""
+    f = (x + 0.5) * inv + m - 0.5  # >= 0: a coarse image has a margin
+    return int(f), f - int(f)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def over_pixel(images, i, color, transmittance, depth, q, ax, ay, total, t_acc, d, p):
+    """One pixel of ``over_layer`` (which see): image i's sample whose first tap is its
+    pixel q (the other taps' weights ax, ay from ``layer_sample``; at scale 1 pixel q
+    itself) under total[p], t_acc[p], d[p]. Returns 1 where t_acc[p] fell to
+    MIN_TRANSMITTANCE here, else 0: the per-pixel maths that the CUDA backend compiles as a
+    device function too."""
+    t = t_acc[p]
+    if t <= MIN_TRANSMITTANCE:
+        return 0
+    w = images[i, IM_WIDTH]
+    if images[i, IM_SCALE] == 1:
+        r, g, b, tr, dq = (color[q, 0], color[q, 1], color[q, 2], transmittance[q], depth[q])
+    else:
+        w00 = (1.0 - ax) * (1.0 - ay)
+        w01 = ax * (1.0 - ay)
+        w10 = (1.0 - ax) * ay
+        w11 = ax * ay
+        q10 = q + w
+        tr = (w00 * transmittance[q] + w01 * transmittance[q + 1]
+              + w10 * transmittance[q10] + w11 * transmittance[q10 + 1])
+        if tr == 1.0:
+            return 0  # nothing there
+        r = (w00 * color[q, 0] + w01 * color[q + 1, 0] + w10 * color[q10, 0]
+             + w11 * color[q10 + 1, 0])
+        g = (w00 * color[q, 1] + w01 * color[q + 1, 1] + w10 * color[q10, 1]
+             + w11 * color[q10 + 1, 1])
+        b = (w00 * color[q, 2] + w01 * color[q + 1, 2] + w10 * color[q10, 2]
+             + w11 * color[q10 + 1, 2])
+        dq = depth[q + (w if ay > 0.5 else 0) + (1 if ax > 0.5 else 0)]
+    total[p, 0] += t * r
+    total[p, 1] += t * g
+    total[p, 2] += t * b
+    t_next = t * tr
+    # the depth: where T first falls to 1/2, from the first layer behind that which has one
+    if t_next <= 0.5 and d[p] == math.inf:
+        d[p] = dq
+    t_acc[p] = t_next
+    return 1 if t_next <= MIN_TRANSMITTANCE else 0
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

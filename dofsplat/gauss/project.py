@@ -262,16 +262,28 @@ def project_shifted_views(positions, scales, rotations, opacity, sh, view, campo
     kept), then ``move_footprint``'d into view_rows (V N, N_FIELDS), view_boxes (V N, 4),
     view_visible (V N,): view v's row of Gaussian i is v N + i, on an image of (width - 2
     margin) x (height - 2 margin). shifts: (V, 2) each view's (shift_x, shift_y), pixels at
-    1/P - 1/z = 1; inv_focus = 1/P."""
-    n = positions.shape[0]
+    1/P - 1/z = 1; inv_focus = 1/P. Each Gaussian's is ``project_shifted_view``'s."""
     no_share = np.zeros(0, np.float32)
+    for i in numba.prange(positions.shape[0]):
+        project_shifted_view(i, positions, scales, rotations, opacity, sh, view, campos, fx,
+                             fy, cx, cy, width, height, near, far, eps2d, antialiased, margin,
+                             shifts, inv_focus, no_share, rows, boxes, visible, view_rows,
+                             view_boxes, view_visible)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def project_shifted_view(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy,
+                         cx, cy, width, height, near, far, eps2d, antialiased, margin, shifts,
+                         inv_focus, no_share, rows, boxes, visible, view_rows, view_boxes,
+                         view_visible):
+    """Gaussian i of ``project_shifted_views`` (which see; no_share: any (0,) float32): the
+    per-Gaussian maths that the CUDA backend compiles as a device function too."""
+    n = positions.shape[0]
     out_w = width - 2 * margin
     out_h = height - 2 * margin
-    for i in numba.prange(n):
-        project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy,
-                         cx, cy, width, height, near, far, eps2d, antialiased, BLUR_NONE, 0.0,
-                         0.0, 0.0, no_share, rows, boxes, visible)
-        for v in range(shifts.shape[0]):
-            move_footprint(i, v * n + i, rows, visible, view_rows, view_boxes, view_visible,
-                           shifts[v, 0], shifts[v, 1], inv_focus, 1.0, -float(margin), out_w,
-                           out_h)
+    project_gaussian(i, positions, scales, rotations, opacity, sh, view, campos, fx, fy, cx,
+                     cy, width, height, near, far, eps2d, antialiased, BLUR_NONE, 0.0, 0.0, 0.0,
+                     no_share, rows, boxes, visible)
+    for v in range(shifts.shape[0]):
+        move_footprint(i, v * n + i, rows, visible, view_rows, view_boxes, view_visible,
+                       shifts[v, 0], shifts[v, 1], inv_focus, 1.0, -float(margin), out_w, out_h)
