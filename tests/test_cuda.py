@@ -475,9 +475,9 @@ def test_gaussian_layers_match_cpu():
     order (``bin_images``: nearest first within a layer; 16 x 12 in the simulator, a blur of
     up to 5 px there: images of scale 1 and 2 with margins)."""
     from dofsplat.backends import cuda_gauss as bg
-    from dofsplat.backends.cpu_gauss import NO_SHARE, in_layers
+    from dofsplat.backends.cpu_gauss import NO_SHARE, in_layers, project_plan
     from dofsplat.frame import lens_parts
-    from dofsplat.gauss.layers import IM_ROW0, IM_ROW1, IM_SCALE, bin_images, project_layers
+    from dofsplat.gauss.layers import IM_ROW0, IM_ROW1, IM_SCALE, bin_images
     from dofsplat.gauss.project import N_FIELDS
 
     camera = _gaussian_camera(G_SIZE if GPU else (16, 12))
@@ -488,15 +488,10 @@ def test_gaussian_layers_match_cpu():
     views, campos, cameras, spans, table, _ = bg.layer_plan(len(scene), layers, camera, lens,
                                                             parts, settings)
     assert len(table) >= 9 and set(table[:, IM_SCALE]) >= {1, 2}
-    n_rows = int(np.sum(spans[:, 1] - spans[:, 0]))
+    rows, boxes, visible = project_plan(scene, views, campos, cameras, spans, table)
+    n_rows = len(rows)
     row_image = np.repeat(np.arange(len(table), dtype=np.int32),
                           table[:, IM_ROW1] - table[:, IM_ROW0])
-    rows = np.empty((n_rows, N_FIELDS), np.float32)
-    boxes = np.zeros((n_rows, 4), np.int32)
-    visible = np.zeros(n_rows, np.bool_)
-    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
-                   NO_SHARE, views, campos, cameras, spans, False, table, row_image, rows, boxes,
-                   visible)
     offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
                                           visible)
 

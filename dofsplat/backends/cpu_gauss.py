@@ -214,15 +214,9 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
         empty = np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32)
         return (to_linear_rgba(*empty, settings.background), np.full((h, w), np.inf, np.float32),
                 {"splats_rendered": 0, "fragments": 0, "layers": 0})
-    n_rows = int(np.sum(spans[:, 1] - spans[:, 0]))
-    row_image = np.repeat(np.arange(len(table), dtype=np.int32),
-                          table[:, IM_ROW1] - table[:, IM_ROW0])
-    rows = np.empty((n_rows, N_FIELDS), np.float32)
-    boxes = np.zeros((n_rows, 4), np.int32)
-    visible = np.zeros(n_rows, np.bool_)
-    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
-                   NO_SHARE if share is None else share, views, campos, cameras, spans,
-                   settings.gaussian_antialiased, table, row_image, rows, boxes, visible)
+    rows, boxes, visible = project_plan(scene, views, campos, cameras, spans, table, share,
+                                        settings.gaussian_antialiased)
+    n_rows = len(rows)
     stats["project_ms"] = _ms(t)
     t = time.perf_counter()
     offsets, ids, tile_image = bin_images(table, np.arange(n_rows, dtype=np.int32), boxes,
@@ -249,6 +243,23 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     stats["fragments"] = int(np.sum((box[:, 1] - box[:, 0]) * (box[:, 3] - box[:, 2])))
     stats["layers"] = len(table)
     return image, out_depth, stats
+
+
+def project_plan(scene, views, campos, cameras, spans, table, share=None,
+                 antialiased: bool = False):
+    """(rows (R, N_FIELDS) float32, boxes (R, 4) int32, visible (R,) bool): every projection
+    of a ``layer_plan`` (``gauss.layers.project_layers``), each row on its image. share: the
+    lens visibility (N,), or None."""
+    n_rows = int(np.sum(spans[:, 1] - spans[:, 0]))
+    row_image = np.repeat(np.arange(len(table), dtype=np.int32),
+                          table[:, IM_ROW1] - table[:, IM_ROW0])
+    rows = np.empty((n_rows, N_FIELDS), np.float32)
+    boxes = np.zeros((n_rows, 4), np.int32)
+    visible = np.zeros(n_rows, np.bool_)
+    project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
+                   NO_SHARE if share is None else share, views, campos, cameras, spans,
+                   antialiased, table, row_image, rows, boxes, visible)
+    return rows, boxes, visible
 
 
 def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: RenderSettings):
