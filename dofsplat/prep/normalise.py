@@ -458,8 +458,8 @@ def _object_setup(surfels: Surfels, neighbours: int, smooth: float):
     m = min(neighbours, len(surfels) - 1)
     if m < 1:
         idx = np.zeros((len(surfels), 1), np.int64)
-    else:
-        _, idx = nearest_neighbours(surfels.positions.astype(np.float64), m)
+    else:  # (the lists only: their distances would double the memory, issue 50)
+        _, idx = nearest_neighbours(surfels.positions.astype(np.float64), m, distances=False)
     args = _object_arrays(surfels)
     smooth_var = smooth * 0.25 * args[3] * args[4] * _initial_weight(surfels)
     return idx, args, smooth_var

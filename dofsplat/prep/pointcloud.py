@@ -52,7 +52,7 @@ import numpy as np
 
 from ..errors import DofsplatError
 from ..surfels import Surfels
-from .neighbours import QUERY_CHUNK, fibonacci_directions, nearest_neighbours
+from .neighbours import QUERY_CHUNK, as_index_array, fibonacci_directions, nearest_neighbours
 
 DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
 # quantisation needs that many for a steady plane fit (of its interior pixels, 0.93 / 0.96
@@ -60,8 +60,8 @@ DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 c
 # reads the same with 16 or 24; docs/maths.md)
 MIN_K = 4  # fewer neighbours cannot fit a plane robustly
 # more is no better fit (the plane of 256 neighbours already spans a dense scan's features)
-# and the neighbour lists take 16 bytes a neighbour and a point (prep.neighbours): K = 256
-# on 10 M points is 41 GB, and a K of a million on a million points asked for 16 TB before
+# and the neighbour lists take 12 bytes a neighbour and a point (prep.neighbours): K = 256
+# on 10 M points is 31 GB, and a K of a million on a million points asked for 16 TB before
 # it was refused
 MAX_K = 256
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
@@ -73,6 +73,10 @@ MID_GREY = 0.2140  # linear value of the sRGB mid grey 0.5: the colour of uncolo
 VOTE_DIRECTIONS = 32  # views that vote for the sign of a component's normals
 VOTE_MAX_POINTS = 1 << 16  # points that take part in the vote (a random sample)
 TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is a tie
+# points (or a point's edges) at a time where a step makes (rows, k+1) or (rows, k+1, 3)
+# temporaries: 10 MB of them at k = 24, where all rows at once peaked at 2.4 kB a point
+# (issue 50). The results do not depend on it: each row is computed alone
+ROW_CHUNK = 1 << 14
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
@@ -129,7 +133,8 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     stages = 4 if normalise == "none" else 5
     with _stage_bar(stages, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
         bar.set_postfix_str("neighbours")
-        dist, idx = nearest_neighbours(pts, k)
+        # smoothing moves the points, and their distances are measured again after it
+        dist, idx = nearest_neighbours(pts, k, distances=not smooth)
         bar.update()
 
         bar.set_postfix_str("normals")
@@ -143,9 +148,19 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
             normals_out[:] = plane_normals
             if smooth:
                 pts = project_to_planes(pts, plane_normals, centroids)
-                dist, idx = neighbour_distances(pts, idx)
+                del plane_normals, centroids
         if given.any():
             normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
+        # the density (step 4) needs only the distances: taken now, they need not sit
+        # beside the orientation's graph, and the smoothed points' distances are never
+        # held whole (issue 50)
+        if smooth:  # the points moved: their neighbours' distances and order changed
+            idx, r_area, r_limit = remeasured_density(pts, idx)
+        else:
+            r_area, r_limit = area_radii(dist)
+        del dist
+        # the later steps read no further than the ORIENT_K or VORONOI_NEIGHBOURS nearest
+        idx = np.ascontiguousarray(idx[:, :max(ORIENT_K, VORONOI_NEIGHBOURS) + 1])
         bar.update()
 
         bar.set_postfix_str("orientation")
@@ -157,12 +172,15 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
         bar.update()
 
         bar.set_postfix_str("radii")
-        radius, area_weight = surfel_radii(pts, normals_out, dist, idx)
+        radius, area_weight = surfel_radii(pts, normals_out, idx, r_area, r_limit)
         bar.update()
         if cols is None:
             cols = np.full((n, 3), MID_GREY, np.float32)
         surfels = Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols,
                           weight=area_weight)
+        # the surfels hold float32 copies: the normalisation's own neighbour lists need not
+        # sit beside these (issue 50)
+        del pts, normals_out, radius, area_weight, idx, r_area, r_limit
         if normalise != "none":
             bar.set_postfix_str(f"normalise ({normalise})")
             surfels = normalise_surfels(surfels, normalise, progress=False)
@@ -258,8 +276,8 @@ def ground_up(surfels: Surfels) -> tuple[float, float, float] | None:
 def pca_normals(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Unit normals by local PCA: (N, 3) float64, sign arbitrary.
 
-    positions: (N, 3) float64; idx: (N, m) int64 neighbour indices (the point itself may be
-    among them). The normal is the eigenvector of the smallest eigenvalue of the
+    positions: (N, 3) float64; idx: (N, m) int32 or int64 neighbour indices (the point
+    itself may be among them). The normal is the eigenvector of the smallest eigenvalue of the
     neighbourhood's covariance matrix.
     """
     return pca_planes(positions, idx)[0]
@@ -275,7 +293,7 @@ def pca_planes(positions: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.n
     normals = np.empty((n, 3), np.float64)
     centroids = np.empty((n, 3), np.float64)
     _pca_kernel(np.ascontiguousarray(positions, np.float64),
-                np.ascontiguousarray(idx, np.int64), normals, centroids)
+                np.ascontiguousarray(as_index_array(idx)), normals, centroids)
     return normals, centroids
 
 
@@ -308,10 +326,31 @@ def neighbour_distances(positions: np.ndarray, idx: np.ndarray):
     The distances from each point to its listed neighbours, each row sorted by distance
     (the point itself, at 0, stays first): after points move a little
     (:func:`project_to_planes`) their neighbour lists stay valid but not their distances.
+    Computed ROW_CHUNK rows at a time: the (N, m, 3) differences of all points at once
+    were the peak of a preparation's memory (issue 50).
     """
-    dist = np.linalg.norm(positions[idx] - positions[:, None, :], axis=2)
-    order = np.argsort(dist, axis=1, kind="stable")
-    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx, order, axis=1)
+    dist = np.empty(idx.shape, np.float64)
+    sorted_idx = np.empty_like(idx)
+    for rows in _row_blocks(len(idx)):
+        dist[rows], sorted_idx[rows] = _sorted_distances(positions, idx, rows)
+    return dist, sorted_idx
+
+
+def remeasured_density(positions: np.ndarray, idx: np.ndarray):
+    """:func:`neighbour_distances` and then :func:`area_radii` of its distances, a block
+    of rows at a time: (idx (N, m) sorted, r_area (N,), limit (N,)), the same values
+    without the (N, m) float64 distances ever whole (8 bytes a neighbour and a point:
+    issue 50). For the smoothed points, whose distances nothing else needs.
+    """
+    n = len(idx)
+    sorted_idx = np.empty_like(idx)
+    r_area = np.empty(n, np.float64)
+    spacing = np.empty(n, np.float64)
+    for rows in _row_blocks(n):
+        dist, sorted_idx[rows] = _sorted_distances(positions, idx, rows)
+        r_area[rows] = _area_radius(dist)
+        spacing[rows] = dist[:, _spacing_column(dist.shape[1])]
+    return sorted_idx, r_area, _radius_limit(r_area, spacing)
 
 
 def pca_normals_slow(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -350,13 +389,19 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
 
     n, m = idx.shape
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    rows = np.repeat(np.arange(n), m)
+    rows = np.repeat(np.arange(n, dtype=idx.dtype), m)
     cols = idx.ravel()
     keep = cols != rows
     rows, cols = rows[keep], cols[keep]
-    # cost > 0 everywhere: csgraph drops explicit zeros
-    cost = 1.0 + 1e-6 - np.abs(np.sum(normals[rows] * normals[cols], axis=1))
+    # cost > 0 everywhere: csgraph drops explicit zeros. In chunks of edges: the (edges, 3)
+    # products of all of them at once were the orientation's peak of memory (issue 50)
+    cost = np.empty(len(rows), np.float64)
+    step = ROW_CHUNK * m
+    for start in range(0, len(rows), step):
+        r, c = rows[start:start + step], cols[start:start + step]
+        cost[start:start + step] = 1.0 + 1e-6 - np.abs(np.sum(normals[r] * normals[c], axis=1))
     graph = coo_matrix((cost, (rows, cols)), shape=(n, n)).tocsr()
+    del rows, cols, cost, keep
     graph = graph.maximum(graph.T)
 
     # roots: a virtual node n joined to every fixed point and to one point of each
@@ -368,7 +413,10 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     first = np.unique(label, return_index=True)[1]  # any point of each component
     roots.extend(r for r in first if not has_fixed[label[r]])
     roots = np.asarray(roots, np.int64)
-    tree = minimum_spanning_tree(graph).tocoo()
+    # (overwrite: the graph is not needed after, and a copy of it was the orientation's
+    # peak of memory)
+    tree = minimum_spanning_tree(graph, overwrite=True).tocoo()
+    del graph
     virt_rows = np.full(len(roots), n)
     t_rows = np.concatenate([tree.row, virt_rows])
     t_cols = np.concatenate([tree.col, roots])
@@ -441,23 +489,37 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
     unseen = votes == 0
     if unseen.any():  # components missing from the sample, or hidden everywhere
         order = np.argsort(label, kind="stable")
-        starts = np.r_[0, np.nonzero(np.diff(label[order]))[0] + 1]
         p_all, n_all, l_all = positions[order], normals[order], label[order]
+        del order
+        starts = np.r_[0, np.nonzero(np.diff(l_all))[0] + 1]
         for chunk in range(0, directions, 8):  # (N, 8) at a time: bounded memory
-            d = dirs[chunk:chunk + 8]
-            reach = p_all @ d.T
-            top = np.maximum.reduceat(reach, starts, axis=0)
-            support = np.where(reach >= top[l_all], n_all @ d.T, 0.0)
-            extreme += np.bincount(l_all, support.sum(axis=1), n_comp)
+            extreme += _extreme_support(p_all, n_all, l_all, starts, dirs[chunk:chunk + 8],
+                                        n_comp)
         votes[unseen] = extreme[unseen]
     return votes
 
 
-def surfel_radii(positions: np.ndarray, normals: np.ndarray, dist: np.ndarray,
-                 idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def area_radii(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The radius of the area each surfel stands for, and the cap on its radii, from the
+    neighbour distances alone (the first half of :func:`surfel_radii`).
+
+    dist: (N, k+1) from ``nearest_neighbours``. Returns (r_area (N,), limit (N,)) float64:
+    r_area = sqrt(1 / rho), rho the smooth kernel density (module docstring, step 4), and
+    limit = the smaller of ``CLUSTER_RADIUS_FACTOR`` x the distance to the 4th neighbour
+    and ``OUTLIER_RADIUS_FACTOR`` x the median r_area.
+    """
+    r_area = np.empty(len(dist), np.float64)
+    for rows in _row_blocks(len(dist)):  # (rows, k+1) temporaries, not (N, k+1)
+        r_area[rows] = _area_radius(dist[rows])
+    return r_area, _radius_limit(r_area, dist[:, _spacing_column(dist.shape[1])])
+
+
+def surfel_radii(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
+                 r_area: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Disk radii that cover the surface, and the area each surfel stands for.
 
-    positions, normals: (N, 3) float64; dist, idx: (N, k+1) from ``nearest_neighbours``.
+    positions, normals: (N, 3) float64; idx: (N, k+1) from ``nearest_neighbours`` (or
+    ``neighbour_distances``); r_area, limit: (N,) from :func:`area_radii`.
     Returns (radius (N,), area_weight (N,)), area_weight = area / radius^2 <= 1 being the
     ``Surfels.weight`` that makes each surfel stand for its area (module docstring):
 
@@ -466,35 +528,58 @@ def surfel_radii(positions: np.ndarray, normals: np.ndarray, dist: np.ndarray,
       Voronoi cell among its neighbours, in its tangent plane; on a square grid of spacing
       h the corners are at h / sqrt(2), so r_cover = h = r_area, and a surface sampled
       irregularly gets the wider disks its gaps need (NaN at the edge of a scan: r_area);
-    * radius = max(r_area, r_cover), both capped at ``CLUSTER_RADIUS_FACTOR`` x the
-      distance to the 4th neighbour and ``OUTLIER_RADIUS_FACTOR`` x the median r_area.
+    * radius = max(r_area, r_cover), both capped at ``limit``.
     """
-    reach = dist[:, -1:]  # > 0: duplicates are merged before the query
-    s2 = (reach / DENSITY_BANDWIDTH) ** 2
-    phi = np.exp(-dist * dist / (2 * s2)) - np.exp(-reach * reach / (2 * s2))
-    q = 0.5 * DENSITY_BANDWIDTH ** 2
-    integral = 2 * math.pi * s2[:, 0] * (1 - math.exp(-q) * (1 + q))
-    rho = np.clip(phi, 0, None).sum(axis=1) / integral
-    r_area = 1.0 / np.sqrt(rho)
-
     corner = np.empty(len(positions), np.float64)
-    m = min(dist.shape[1], VORONOI_NEIGHBOURS + 1)
+    m = min(idx.shape[1], VORONOI_NEIGHBOURS + 1)
     _cell_reach_kernel(np.ascontiguousarray(positions, np.float64),
                        np.ascontiguousarray(normals, np.float64),
-                       np.ascontiguousarray(idx[:, :m], np.int64), corner)
+                       as_index_array(idx)[:, :m], corner)  # (a view: no copy)
     r_cover = math.sqrt(2.0) * corner
-
-    # outliers: a small cluster far from everything has its k-th neighbour, hence the
-    # kernel, far away; keep its disks within a few of its own spacings, and lone fliers
-    # within a few typical radii
-    limit = np.minimum(CLUSTER_RADIUS_FACTOR * dist[:, min(4, dist.shape[1] - 1)],
-                       OUTLIER_RADIUS_FACTOR * np.median(r_area))
     r_area = np.minimum(r_area, limit)
     radius = np.minimum(np.fmax(r_area, r_cover), limit)  # fmax: NaN -> r_area
     return radius, (r_area / radius) ** 2
 
 
 # -- numba kernels and helpers -----------------------------------------------------------
+
+
+def _row_blocks(n: int):
+    """Slices of ROW_CHUNK rows that cover 0 .. n."""
+    for start in range(0, n, ROW_CHUNK):
+        yield slice(start, min(n, start + ROW_CHUNK))
+
+
+def _sorted_distances(positions: np.ndarray, idx: np.ndarray, rows: slice):
+    """The rows' distances to their listed neighbours and the lists, each row sorted by
+    distance (stable: ties keep the lists' order): ((rows, m) float64, (rows, m))."""
+    dist = np.linalg.norm(positions[idx[rows]] - positions[rows, None, :], axis=2)
+    order = np.argsort(dist, axis=1, kind="stable")
+    return np.take_along_axis(dist, order, axis=1), np.take_along_axis(idx[rows], order, axis=1)
+
+
+def _spacing_column(m: int) -> int:
+    """The column of the 4th neighbour's distance (the cluster cap's spacing) of m."""
+    return min(4, m - 1)
+
+
+def _radius_limit(r_area: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """The cap on the radii (:func:`area_radii`). Outliers: a small cluster far from
+    everything has its k-th neighbour, hence the kernel, far away; keep its disks within
+    a few of its own spacings, and lone fliers within a few typical radii."""
+    return np.minimum(CLUSTER_RADIUS_FACTOR * spacing, OUTLIER_RADIUS_FACTOR * np.median(r_area))
+
+
+def _area_radius(dist: np.ndarray) -> np.ndarray:
+    """sqrt(1 / rho), rho the smooth kernel density over each row of neighbour distances
+    (module docstring, step 4): dist (rows, k+1) from ``nearest_neighbours``."""
+    reach = dist[:, -1:]  # > 0: duplicates are merged before the query
+    s2 = (reach / DENSITY_BANDWIDTH) ** 2
+    phi = np.exp(-dist * dist / (2 * s2)) - np.exp(-reach * reach / (2 * s2))
+    q = 0.5 * DENSITY_BANDWIDTH ** 2
+    integral = 2 * math.pi * s2[:, 0] * (1 - math.exp(-q) * (1 + q))
+    rho = np.clip(phi, 0, None).sum(axis=1) / integral
+    return 1.0 / np.sqrt(rho)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -637,6 +722,20 @@ def _cell_reach_kernel(positions, normals, idx, out):
                 if inside:
                     reach = math.sqrt(r2)
         out[p] = reach
+
+
+def _extreme_support(positions, normals, label, starts, dirs, n_comp: int) -> np.ndarray:
+    """Per component, the sum over the directions d in dirs (m, 3) of n . d at its points
+    farthest along d: (n_comp,). The points are sorted by component (label), whose runs
+    begin at starts. Its (N, m) arrays live one or two at a time and go on return: four at
+    once were the peak of a large cloud's orientation (issue 50)."""
+    reach = positions @ dirs.T
+    top = np.maximum.reduceat(reach, starts, axis=0)
+    on_top = reach >= top[label]
+    del reach
+    support = normals @ dirs.T
+    support[~on_top] = 0.0
+    return np.bincount(label, support.sum(axis=1), n_comp)
 
 
 def _grid_cells(x: np.ndarray, cell: float, most: int = 1 << 20) -> np.ndarray:

@@ -1,0 +1,134 @@
+"""Memory of a point cloud's preparation (issue 50): peak RSS per stage, and a bit-for-bit check.
+
+    python bench/prep_memory.py /tmp/synth1m.laz --save /tmp/prep_ref.npz   # before a change
+    python bench/prep_memory.py /tmp/synth1m.laz --check /tmp/prep_ref.npz  # after it
+    python bench/prep_memory.py /tmp/synth1m.laz --stages                   # RSS per stage
+
+The file is loaded with ``dofsplat.io.load(path, cache="off")`` (the preparation of
+``prep.pointcloud.points_to_surfels``). ``--save`` writes the surfel arrays (positions,
+normals, radius, colors, opacity, weight) to an .npz; ``--check`` compares them with
+``np.array_equal`` (a change that lowers memory must not change a bit). ``--stages`` samples
+the process's resident set every 5 ms and prints the highest it reached during each stage
+of the preparation (the stage functions are wrapped), in GB and bytes a point; for the
+whole run use ``/usr/bin/time -v`` (Maximum resident set size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import os
+import threading
+import time
+
+import numpy as np
+
+FIELDS = ("positions", "normals", "radius", "colors", "opacity", "weight")
+
+
+def rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+class StageSampler:
+    """A thread that records the highest RSS seen under each stage label."""
+
+    def __init__(self, period: float = 0.005):
+        self.period = period
+        self.stage = "read"
+        self.peaks: dict[str, int] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.is_set():
+            self._note()
+            time.sleep(self.period)
+
+    def _note(self):
+        r = rss_bytes()
+        if r > self.peaks.get(self.stage, 0):
+            self.peaks[self.stage] = r
+
+    @contextlib.contextmanager
+    def under(self, label: str):
+        outer, self.stage = self.stage, label
+        try:
+            yield
+        finally:
+            self._note()
+            # the time between two stages is reported as "after" the one that ended
+            self.stage = outer if outer != "read" and not outer.startswith("after ") \
+                else f"after {label}"
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def wrap_stages(sampler: StageSampler):
+    """Wrap the preparation's stage functions so that the sampler knows which one runs."""
+    from dofsplat.prep import normalise, pointcloud
+
+    def wrap(module, name, label=None):
+        fn = getattr(module, name)
+
+        @functools.wraps(fn)
+        def staged(*args, **kwargs):
+            with sampler.under(label or name):
+                return fn(*args, **kwargs)
+
+        setattr(module, name, staged)
+
+    for name in ("_merge_duplicates", "nearest_neighbours", "pca_planes", "project_to_planes",
+                 "neighbour_distances", "remeasured_density", "area_radii",
+                 "orient_normals", "surfel_radii"):
+        wrap(pointcloud, name)
+    wrap(normalise, "_object_setup", "normalise: neighbours")
+    wrap(normalise, "object_weights", "normalise: object_weights")
+    wrap(normalise, "rendered_level", "normalise: rendered_level")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("path")
+    parser.add_argument("--save", help="write the surfel arrays to this .npz")
+    parser.add_argument("--check", help="compare the surfel arrays with this .npz")
+    parser.add_argument("--stages", action="store_true", help="peak RSS per stage")
+    args = parser.parse_args()
+
+    from dofsplat.io import load
+
+    t0 = time.perf_counter()
+    if args.stages:
+        sampler = StageSampler()
+        wrap_stages(sampler)
+        with sampler:
+            surfels = load(args.path, cache="off")
+    else:
+        surfels = load(args.path, cache="off")
+    seconds = time.perf_counter() - t0
+    n = len(surfels)
+    print(f"{args.path}: {n:,} surfels in {seconds:.1f} s")
+    if args.stages:
+        for label, peak in sampler.peaks.items():
+            print(f"  {label:28s} {peak / 1e9:6.2f} GB  {peak / n:7.0f} B/point")
+    arrays = {name: getattr(surfels, name) for name in FIELDS}
+    if args.save:
+        np.savez(args.save, **arrays)
+        print(f"saved {args.save}")
+    if args.check:
+        ref = np.load(args.check)
+        bad = [name for name in FIELDS if not np.array_equal(ref[name], arrays[name])]
+        print("identical" if not bad else f"DIFFERENT: {', '.join(bad)}")
+        raise SystemExit(1 if bad else 0)
+
+
+if __name__ == "__main__":
+    main()
