@@ -19,14 +19,16 @@ def add_parser(commands) -> None:
         description="Load a model as 'render' does (points get normals and radii, meshes "
                     "are sampled, the per-surfel normalisation), build its LOD tree, and "
                     "write both as one .dofsplat file, which render, view and animate open "
-                    "in milliseconds and read through memory maps: a frame reads only the "
-                    "part of the model it draws (a blurred region only its coarse nodes). "
+                    "in milliseconds and read through memory maps: a frame reads the pages "
+                    "of the nodes it draws, and the kernel keeps or drops them as memory "
+                    "allows. "
                     "The file is written under a temporary name and renamed when complete, "
                     "so an interrupted run leaves nothing that a render would trust.",
         epilog="examples:\n  dofsplat prepare scan.laz -o scan.dofsplat\n"
                "  dofsplat render scan.dofsplat -o scan.png --f-number 2 --focus-at 400 300")
     prepare.add_argument("input", metavar="INPUT",
-                         help="model file: " + ", ".join(MODEL_EXTENSIONS)
+                         help="model file: " + ", ".join(
+                             e for e in MODEL_EXTENSIONS if e not in (".spz", ".sog", ".dofsplat"))
                          + " (not a Gaussian scene)")
     prepare.add_argument("-o", "--output", metavar="OUT.dofsplat",
                          help="the file to write (default: the input's name with .dofsplat)")
