@@ -450,11 +450,15 @@ def test_the_compile_notice_names_the_gaussian_kernels(tmp_path):
     if not path.exists():
         pytest.skip(f"shared data not found: {path}")
     env = dict(os.environ, DOFSPLAT_KERNEL_DIR=str(tmp_path / "kernels"))
-    result = subprocess.run(["dofsplat", "render", str(path), "-o", str(tmp_path / "f.png"),
-                             "--size", "64x48"], capture_output=True, text=True, env=env,
-                            timeout=900)
-    assert result.returncode == 0, result.stderr
-    first = result.stderr.splitlines()[0]
+    # the notice comes first: read it, then stop the run (the compile itself takes the
+    # COMPILE_SECONDS the notice names, which the suite need not spend)
+    proc = subprocess.Popen(["dofsplat", "render", str(path), "-o", str(tmp_path / "f.png"),
+                             "--size", "64x48"], stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        first = proc.stderr.readline().rstrip("\n")
+    finally:
+        proc.kill()
+        proc.wait(timeout=60)
     assert first.startswith("dofsplat: compiling the Gaussian rendering kernels, once "
                             f"(about {COMPILE_SECONDS} s"), first
 
