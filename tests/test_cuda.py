@@ -374,7 +374,7 @@ def _gaussians(n: int = 60, seed: int = 1) -> ds.Gaussians:
 
 
 # 2 x 2 tiles in the simulator (a Python thread per pixel), 8 x 6 on a GPU
-G_SIZE = (128, 96) if GPU else (32, 24)
+G_SIZE = (128, 96) if GPU else (24, 18)
 
 
 def _gaussian_camera(size=G_SIZE):
@@ -424,7 +424,7 @@ def test_gaussian_frame_matches_cpu(aperture, settings):
 @needs_cuda
 def test_gaussian_frame_without_layers_matches_cpu(monkeypatch):
     """``cpu_gauss.LAYERS`` off, read at the call on both devices: each part of the lens
-    drawn whole, with ``lens_visibility`` (at 16 x 12 in the simulator: 4 parts of one tile,
+    drawn whole, with ``lens_visibility`` (at 16 x 12 in the simulator, 2 parts of one tile:
     the cheapest frame that launches the kernels of the parts drawn whole)."""
     import dataclasses
 
@@ -434,10 +434,11 @@ def test_gaussian_frame_without_layers_matches_cpu(monkeypatch):
                                                                  enabled=False))
     scene, camera = _gaussians(), _gaussian_camera(G_SIZE if GPU else (16, 12))
     lens = ds.ThinLens(focus_distance=2.5, aperture=3.0)
-    cpu = ds.render(scene, camera, lens, ds.RenderSettings())
-    gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda"))
+    parts = {"gaussian_lens_samples": 4 if GPU else 2}  # (the simulator's time)
+    cpu = ds.render(scene, camera, lens, ds.RenderSettings(**parts))
+    gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda", **parts))
     assert "layers" not in cpu.stats and "layers" not in gpu.stats
-    assert gpu.stats["lens_samples"] == 4
+    assert gpu.stats["lens_samples"] == parts["gaussian_lens_samples"]
     assert cpu.stats["splats_rendered"] > 0 and np.ptp(cpu.image[..., :3]) > 0.1
     _assert_same_gaussian_frame(cpu, gpu)
 
