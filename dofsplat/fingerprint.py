@@ -35,8 +35,7 @@ def content_hash(model, fields: tuple[str, ...] | None = None, salt: str = "", *
     """
     if not dataclasses.is_dataclass(model) or isinstance(model, type):
         raise TypeError(f"content_hash needs a dataclass instance, got {type(model).__name__}")
-    names = tuple(f.name for f in dataclasses.fields(model)) if fields is None else tuple(fields)
-    values = tuple(getattr(model, name) for name in names)
+    names, values = _fields(model, fields)
     state = getattr(model, "__dict__", None)  # (None for a dataclass with slots: not kept)
     kept = state.get(_KEPT, {}) if state is not None else {}
     hit = kept.get((names, salt))
@@ -61,7 +60,12 @@ def remember_hash(model, fields: tuple[str, ...] | None, salt: str, digest: str)
     field values, as a computed hash is kept (``cached=True`` returns it while the fields
     are the same objects): for a model whose hash is known without reading it, a stored
     model's (``io.model_file``), whose arrays are memory maps of a file larger than memory."""
-    names = tuple(f.name for f in dataclasses.fields(model)) if fields is None else tuple(fields)
-    values = tuple(getattr(model, name) for name in names)
+    names, values = _fields(model, fields)
     kept = model.__dict__.get(_KEPT, {})
     model.__dict__[_KEPT] = {**kept, (names, salt): (values, digest)}
+
+
+def _fields(model, fields):
+    """(names, values) of the fields hashed: ``fields``, or all in declaration order."""
+    names = tuple(f.name for f in dataclasses.fields(model)) if fields is None else tuple(fields)
+    return names, tuple(getattr(model, name) for name in names)
