@@ -248,7 +248,8 @@ def reference_key(scene: FidelityScene, lens: ds.ThinLens, samples: int) -> str:
         digest.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
     # the settings a pinhole sample uses: not the LOD's nor the device's
     skip = {"lod", "lod_pixel_threshold", "lod_blur_fraction", "lod_min_node",
-            "lod_color_tolerance", "show_lod", "device", "max_tile_pairs", "lens_samples"}
+            "lod_color_tolerance", "show_lod", "device", "max_tile_pairs", "lens_samples",
+            "coarse_blur_px"}  # a pinhole sample has no blur to sample coarsely
     settings = {k: v for k, v in dataclasses.asdict(scene.settings).items() if k not in skip}
     meta = {"version": REFERENCE_VERSION, "scene": scene.name,
             "size": [scene.camera.width, scene.camera.height], "camera": repr(scene.camera),
@@ -502,6 +503,10 @@ def main(argv=None) -> int:
                     help="ours' finer cut for textured nodes (RenderSettings."
                          "lod_color_tolerance; default the renderer's, 0.02; inf: none, "
                          "the paper's)")
+    ap.add_argument("--coarse-blur", type=float, default=ds.RenderSettings.coarse_blur_px,
+                    help="ours' threshold for drawing a wide blur at every second pixel "
+                         "(RenderSettings.coarse_blur_px; default the renderer's, 8 px; 0: "
+                         "every pixel)")
     args = ap.parse_args(argv)
     defaults = QUICK if args.quick else FULL
     size = args.size or defaults["size"]
@@ -522,7 +527,8 @@ def main(argv=None) -> int:
         scene.settings = dataclasses.replace(scene.settings, lens_samples=args.lens_samples,
                                              lod_blur_fraction=args.lod_blur_fraction,
                                              lod_min_node=args.lod_min_node,
-                                             lod_color_tolerance=args.lod_color_tolerance)
+                                             lod_color_tolerance=args.lod_color_tolerance,
+                                             coarse_blur_px=args.coarse_blur)
         print(f"{name}: {len(scene.surfels):,} surfels, {size[0]}x{size[1]}, N = {samples}; "
               f"{scene.note}", file=sys.stderr)
         scene_rows, frames = measure_scene(scene, samples, repeat, TARGET_COC_PX, cache,
@@ -539,7 +545,7 @@ def main(argv=None) -> int:
               "reference_version": REFERENCE_VERSION, "load_average": load,
               "lens_samples": args.lens_samples, "lod_blur_fraction": args.lod_blur_fraction,
               "lod_min_node": args.lod_min_node,
-              "lod_color_tolerance": args.lod_color_tolerance,
+              "lod_color_tolerance": args.lod_color_tolerance, "coarse_blur_px": args.coarse_blur,
               "run_s": time.perf_counter() - t_start, "scene_s": scene_s, "rows": rows}
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(_finite(record), indent=1, default=_json_number, allow_nan=False) + "\n"

@@ -58,7 +58,7 @@ def simd(out, reps, w, radius, mix, table, u_c):
     for r in range(reps):
         dx0 = -7.3 + 1e-7 * r
         aperture_rows(cell, frac, ROW, dx0, -7.6, radius, c11, c12, c22, w[0, 0], w[0, 1],
-                      w[1, 1], mix, u_c)
+                      w[1, 1], mix, u_c, 1.0)
         for i in range(ROW):
             for j in range(SPAN):
                 e = i * ROW + j

@@ -57,11 +57,12 @@ class RenderSettings:
     gaussian_lens_samples: int = 4  # Gaussian scenes: the lens drawn in this many parts (as lens_samples, which wins when larger): 1.1-7.3 dB closer to the lens reference than one pass at 0.9-1.5 x its cost (bench/RESULTS.md); 1 = one pass
     gaussian_lod: bool = True  # Gaussian scenes: draw coarser Gaussians where the lens blurs (gauss/lod.py; the stop is lod_blur_fraction; lod=False turns it off too): at 35 px 3.8-8.7x faster, 1.9-3.8 dB closer to the lens reference on the donut and playbot, 2.5 dB further on the guitar (bench/RESULTS.md)
     gaussian_antialiased: bool = False  # Gaussian scenes: gsplat's "antialiased" mode, the opacity scaled by sqrt(det before / det after) the 0.3 px^2 low-pass (for scenes trained so; gauss/project.py)
+    coarse_blur_px: float = 8.0  # CPU: a splat blurred by an aperture of at least this radius (px) is drawn at every second pixel and interpolated (raster/abuffer.py, rasterize_band); 0: every pixel
     sharp_visibility: bool = False  # pinhole frames too remove the splats hidden behind an opaque front (their z-ranges no longer merge with grazing ones); 1.1-1.5 x a pinhole frame's time (bench/profile.py --sharp-visibility); the reference renderer turns it on (docs/maths.md, "Hidden from the whole lens")
 
     def __post_init__(self):
         for name in ("cutoff", "z_thickness", "lod_pixel_threshold", "lod_blur_fraction",
-                     "lod_color_tolerance", "max_tile_pairs"):
+                     "lod_color_tolerance", "max_tile_pairs", "coarse_blur_px"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise DofsplatError(f"{name} must be a number, got {value!r}")
@@ -110,6 +111,8 @@ class RenderSettings:
         if self.lens_parts not in LENS_PARTS:
             raise DofsplatError(f"lens_parts must be one of {', '.join(LENS_PARTS)}, "
                                 f"got {self.lens_parts!r}")
+        if not (math.isfinite(self.coarse_blur_px) and self.coarse_blur_px >= 0):
+            raise DofsplatError(f"coarse_blur_px must be >= 0 (0: off), got {self.coarse_blur_px}")
         if self.show_lod and not self.lod:
             raise DofsplatError("show_lod needs lod=True")
         if self.gaussian_blur not in GAUSSIAN_BLURS:

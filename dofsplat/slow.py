@@ -448,12 +448,15 @@ def _exponents(m, Wi, x0, x1, y0, y1):
 def rasterize_reference(splats, bbox, visible, width, height, cutoff, background,
                         max_surfaces: int = MAX_SURFACES,
                         merge=(0.0, 0.0, MERGE_RHO0, MERGE_RHO1), blades=None,
-                        sharp_visibility: bool = False):
+                        sharp_visibility: bool = False, coarse: float = 0.0):
     """Python twin of the tile rasteriser: (image (H, W, 4), depth (H, W), weight (H, W), fragments).
 
     merge: (K, 1/P, rho0, rho1) of ``merge_parameters_reference`` (K <= 0: the paper's "over");
     blades: (N, 2) edge normals of a polygonal aperture (None: round);
-    sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility).
+    sharp_visibility: the front pass in a sharp frame too (RenderSettings.sharp_visibility);
+    coarse: ``RenderSettings.coarse_blur_px``: a splat whose aperture radius is at least this
+    goes into an A-buffer of the pixels of even row and column only, whose surfaces each
+    pixel then takes, interpolated linearly between the samples around it (0: none).
     """
     from .splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
                                 GY, MIX, MX, MY, RAD, REACH, RED, RX, RY, ZHI, ZLO)
@@ -467,6 +470,7 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             splats[k, AMP] *= visibility_reference(splats[k], front, merge, width)
     # per pixel: list of surfaces [w, wr, wg, wb, wa, wd, zlo, zhi]
     abuf = [[[] for _ in range(width)] for _ in range(height)]
+    samples = {}  # (i, j) even: the coarse samples' surfaces
     fragments = 0
     for k in np.flatnonzero(visible):
         s = splats[k]
@@ -474,6 +478,9 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             continue
         Wi = np.array([[s[C11], s[C12]], [s[C12], s[C22]]])
         x0, x1, y0, y1 = bbox[k]
+        wide = coarse > 0 and abs(s[RAD]) >= coarse
+        if wide:  # the samples reach a row and a column past the image
+            x1, y1 = x1 + (x1 == width - 1), y1 + (y1 == height - 1)
         if s[RAD] != 0:
             kern = aperture_reference(s[[MX, MY]], np.linalg.inv(Wi), s[RAD], s[MIX], s[REACH],
                                       blades, cutoff, x0, x1, y0, y1)
@@ -482,14 +489,31 @@ def rasterize_reference(splats, bbox, visible, width, height, cutoff, background
             kern = np.where(q < cutoff, np.exp(-q) - s[FLOOR], 0.0)
             kern[q >= cutoff] = -1.0  # outside: no fragment (a tapered edge may be 0 inside)
         for i, j in zip(*np.nonzero(kern > 0 if s[RAD] != 0 else kern >= 0)):
+            if wide and ((y0 + i) % 2 or (x0 + j) % 2):
+                continue
             w = s[AMP] * kern[i, j]
             # an LOD node's colour slope (zero for a surfel), clamped at black
             d = np.array([x0 + j + 0.5 - s[MX], y0 + i + 0.5 - s[MY]])
             rgb = np.maximum(s[[RED, GREEN, BLUE]] + s[[[RX, RY], [GX, GY], [BX, BY]]] @ d, 0.0)
             frag = [w, w * rgb[0], w * rgb[1], w * rgb[2], w * s[ALPHA], w * s[DEPTH],
                     w if s[ALPHA] >= OPAQUE else 0.0, s[ZLO], s[ZHI]]
+            if wide:  # a sample (counted where it is a pixel of the image)
+                _insert(samples.setdefault((y0 + i, x0 + j), []), frag, max_surfaces)
+                fragments += y0 + i < height and x0 + j < width
+                continue
             _insert(abuf[y0 + i][x0 + j], frag, max_surfaces)
             fragments += 1
+    for i in range(height):
+        for j in range(width):
+            # the samples around the pixel: itself where even, else the two beside it
+            rows = (i - 1, i + 1) if i % 2 else (i,)
+            cols = (j - 1, j + 1) if j % 2 else (j,)
+            scale = 1.0 / (len(rows) * len(cols))
+            for a in rows:
+                for b in cols:
+                    for surface in samples.get((a, b), ()):
+                        _insert(abuf[i][j], [scale * v for v in surface[:7]] + surface[7:],
+                                max_surfaces)
     image = np.zeros((height, width, 4))
     depth = np.full((height, width), np.inf)
     weight = np.zeros((height, width))
@@ -835,4 +859,5 @@ def render_reference(surfels: Surfels, camera: Camera, lens=None, settings=None)
                                merge=merge_parameters_reference(camera, lens, settings),
                                blades=aperture_shape_reference(lens, settings)[1],
                                sharp_visibility=settings.sharp_visibility
-                               and settings.reconstruction == "soft")
+                               and settings.reconstruction == "soft",
+                               coarse=settings.coarse_blur_px)

@@ -170,7 +170,7 @@ def test_the_rasteriser_compiled_apart_has_the_frame_types():
     from dofsplat.raster import abuffer
 
     kernels = (abuffer.rasterize_band, abuffer.bin_splats, abuffer.front_band,
-               abuffer.apply_visibility, abuffer.tile_rows_pairs)
+               abuffer.apply_visibility, abuffer.tile_rows_pairs, abuffer.widen_boxes)
     before = [list(k.signatures) for k in kernels]
     assert all(len(s) == 1 for s in before)
     cpu.compile_rasteriser()

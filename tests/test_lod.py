@@ -741,7 +741,7 @@ def _cut_against_the_twin(s, tree, cam, lens, st):
     assert res.stats["splats_selected"] == src.size
     img = rasterize_reference(*fast, cam.width, cam.height, st.cutoff, st.background,
                               merge=merge_parameters(cam, lens, st),
-                              blades=aperture_shape(lens, st)[1])[0]
+                              blades=aperture_shape(lens, st)[1], coarse=st.coarse_blur_px)[0]
     np.testing.assert_allclose(res.image, img, atol=1e-4)
     return src, fast
 
@@ -883,7 +883,8 @@ def test_a_cut_drawn_in_chunks_is_the_cut_drawn_whole(plane_view, monkeypatch, s
 
 
 @pytest.mark.parametrize("aperture, extra", [(0.0, {}), (0.0, {"show_lod": True}),
-                                             (0.1, {}), (0.0, {"sharp_visibility": True})])
+                                             (0.1, {}), (0.0, {"sharp_visibility": True}),
+                                             (1.0, {})])
 def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch, aperture,
                                                          extra):
     """A cut of more than max_splat_rows nodes is projected band by band
@@ -897,6 +898,9 @@ def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch
     lens = ds.ThinLens(focus_distance=3.0, aperture=aperture)
     whole = ds.render(s, cam, lens, ds.RenderSettings(**extra))
     assert whole.stats["bands"] == 1
+    if aperture >= 1.0:  # wide: drawn from the coarse samples, shared across bands' edges
+        fine = ds.render(s, cam, lens, ds.RenderSettings(coarse_blur_px=0.0, **extra))
+        assert np.abs(fine.image - whole.image).max() > 1e-4
     monkeypatch.setattr(cpu, "CUT_CHUNK", 3000)  # the first pass in chunks too
     seen, planned = [], []
     project_cut, plan_bands = cpu.project_cut, cpu.plan_bands
@@ -912,7 +916,7 @@ def test_a_cut_drawn_band_by_band_is_the_cut_drawn_whole(plane_view, monkeypatch
 
     monkeypatch.setattr(cpu, "project_cut", counting)
     monkeypatch.setattr(cpu, "plan_bands", planning)
-    budget = 4000
+    budget = 4000 if aperture < 1.0 else 1000  # the wide blur's cut is coarser
     banded = ds.render(s, cam, lens, ds.RenderSettings(max_splat_rows=budget, **extra))
     assert banded.stats["bands"] == len(planned) >= 4
     assert whole.stats["splats_selected"] > 3 * budget

@@ -207,7 +207,8 @@ def test_kernels_equal_their_numpy_twins(seed, elliptical, aperture, cull, shadi
     img, depth, weight, frags = rasterize_reference(
         *fast, cam.width, cam.height, st.cutoff, st.background,
         merge=merge_parameters_reference(cam, lens, st),
-        blades=aperture_shape_reference(lens, st)[1], sharp_visibility=sharp)
+        blades=aperture_shape_reference(lens, st)[1], sharp_visibility=sharp,
+        coarse=st.coarse_blur_px)
     np.testing.assert_allclose(res.image, img, atol=1e-4)
     if sharp:  # the front pass removed something, or the case tests nothing new
         plain = ds.render(s, cam, lens, dataclasses.replace(st, sharp_visibility=False))
@@ -268,7 +269,7 @@ def twin_frame(s, cam, lens, st):
     img, depth, weight, frags = rasterize_reference(
         *fast, cam.width, cam.height, st.cutoff, st.background,
         merge=merge_parameters_reference(cam, lens, st),
-        blades=aperture_shape_reference(lens, st)[1])
+        blades=aperture_shape_reference(lens, st)[1], coarse=st.coarse_blur_px)
     np.testing.assert_allclose(res.image, img, atol=1e-4)
     np.testing.assert_allclose(res.weight, weight, atol=1e-4)
     fin = np.isfinite(depth)
@@ -294,6 +295,9 @@ def test_aperture_kernels_equal_their_numpy_twins(blades):
     coc = fast[0][vis, COC]
     assert coc.max() > 30 and np.median(coc) > 10
     assert np.count_nonzero(fast[0][vis, RAD]) >= 0.9 * vis.sum()
+    # most drawn from the coarse samples (raster/abuffer.py: coarse_blur_px), some not
+    wide = np.abs(fast[0][vis, RAD]) >= st.coarse_blur_px
+    assert 0.5 * vis.sum() < wide.sum() < vis.sum()
 
 
 def test_the_front_pass_reach_equals_its_numpy_twin():
@@ -333,7 +337,8 @@ def test_an_lod_cut_with_aperture_kernels_equals_its_numpy_twin():
     np.testing.assert_allclose(fast[0][vis], slow[0][vis], rtol=2e-4, atol=1e-5)
     res = ds.render(s, cam, lens, st)
     img = rasterize_reference(*fast, cam.width, cam.height, st.cutoff, st.background,
-                              merge=merge_parameters_reference(cam, lens, st))[0]
+                              merge=merge_parameters_reference(cam, lens, st),
+                              coarse=st.coarse_blur_px)[0]
     np.testing.assert_allclose(res.image, img, atol=1e-4)
 
 
@@ -396,11 +401,17 @@ def test_the_slow_frame_parameters_equal_the_kernels():
 
 
 @pytest.mark.parametrize("lod", [False, True])
-def test_image_does_not_depend_on_thread_count_or_banding(lod):
+@pytest.mark.parametrize("aperture", [0.3, 2.0])
+def test_image_does_not_depend_on_thread_count_or_banding(lod, aperture):
+    """The same image from any number of threads and bands; at aperture 2 most splats are
+    drawn from the coarse samples, which neighbouring tiles and bands share."""
     s = random_scene(5, n=2000)
     cam = ds.Camera(eye=(0, 0, 4), target=(0, 0, 0), width=96, height=80, fov_y=35)
-    lens = ds.ThinLens(focus_distance=3.0, aperture=0.3)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=aperture)
     st = ds.RenderSettings(lod=lod)
+    if aperture > 1.0:  # the samples are drawn (the frame is not the fine one)
+        fine = ds.render(s, cam, lens, ds.RenderSettings(lod=lod, coarse_blur_px=0.0))
+        assert np.abs(fine.image - ds.render(s, cam, lens, st).image).max() > 1e-4
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
@@ -557,6 +568,9 @@ def test_arguments_of_the_wrong_kind_are_named():
     (dict(max_tile_pairs="many"), "max_tile_pairs must be a number"),
     (dict(lights=ds.HEADLIGHT), "lights must be a tuple of Light"),
     (dict(lights=None), "lights must be a tuple of Light, got None"),
+    (dict(coarse_blur_px="8"), "coarse_blur_px must be a number"),
+    (dict(coarse_blur_px=-1.0), r"coarse_blur_px must be >= 0 \(0: off\), got -1.0"),
+    (dict(coarse_blur_px=float("nan")), "coarse_blur_px must be >= 0"),
 ])
 def test_settings_of_the_wrong_kind_are_named(kwargs, message):
     """RenderSettings' numbers and lights of the wrong kind: a DofsplatError naming the

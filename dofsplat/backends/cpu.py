@@ -162,7 +162,7 @@ def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: R
     (``front_chunk``), in cut order as the one-buffer frame draws them. Adds to
     clock["select_ms"], ["project_ms"] and ["front_ms"]."""
     from ..lod import gather_cut
-    from ..raster.abuffer import FRONT_MARGIN
+    from ..raster.abuffer import FRONT_MARGIN, widen_boxes
 
     boxes = replace(settings, exact_normalization=False)
     n, chunk = cut[0].size, rows.shape[0]
@@ -174,6 +174,8 @@ def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: R
         t = time.perf_counter()
         out = (rows[:hi - lo], bbox[lo:hi], visible[lo:hi])
         project(source, source.colors, camera, lens, boxes, slopes=False, out=out)
+        if settings.coarse_blur_px > 0.0:  # as rasterize bins them, for the bands' choice
+            widen_boxes(*out, float(settings.coarse_blur_px))
         clock["project_ms"] += _ms(t)
         del source
         if front is not None:
@@ -472,7 +474,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
     import numba
 
     from ..raster.abuffer import (FRONT_MARGIN, TILE, apply_visibility, bin_splats,
-                                 keep_tile_lists, keep_tiles, rasterize_band)
+                                 keep_tile_lists, keep_tiles, rasterize_band, widen_boxes)
 
     w, h = camera.width, camera.height
     n_tx = -(-w // TILE)
@@ -497,10 +499,15 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
         front_chunk(splats, visible, camera, front, margin)
         apply_visibility(splats, visible, front, fw, fh, margin, coc_k, inv_focus, rho0, rho1)
         front_ms = _ms(t)
+    coarse = float(settings.coarse_blur_px)
+    if coarse > 0.0 and rows is None:
+        widen_boxes(splats, bbox, visible, coarse)
     if tiles is not None and rows is None:
         keep_tiles(bbox, visible, tiles)
     for ty0, ty1 in bands:
         sp, bb, vis = (splats, bbox, visible) if rows is None else rows(ty0, ty1)
+        if coarse > 0.0 and rows is not None:
+            widen_boxes(sp, bb, vis, coarse)
         if rows is not None and front is not None:
             # each band's rows are new: the visibility of its splats, from the whole front
             t = time.perf_counter()
@@ -515,7 +522,7 @@ def rasterize(splats, bbox, visible, bands, camera: Camera, settings: RenderSett
         tile_stats = np.zeros((len(offsets) - 1, 3), np.int64)
         rasterize_band(sp, bb, offsets, ids, n_tx, ty0, w, h, float(settings.cutoff),
                        background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0,
-                       rho1, blades, table, u_c, numba.config.NUMBA_NUM_THREADS)
+                       rho1, blades, table, u_c, numba.config.NUMBA_NUM_THREADS, coarse)
         raster_ms += _ms(t)
         layers[ty0:ty1] = tile_stats[:, 2].reshape(-1, n_tx)
         frags += int(tile_stats[:, 0].sum())

@@ -51,9 +51,9 @@ from ..lod.select import (CULL_TEST_MIN_COUNT, DESCEND, SELECT, gather_gradient,
                           leaves_below, visit_node)
 from ..raster.abuffer import (FRONT_FIELDS, FRONT_MARGIN, MAX_SURFACES, N_ACC,
                               RESOLVE_SCRATCH, TILE, front_box, front_fragments,
-                              insert_fragment, resolve_to_image, splat_visibility)
-from ..splat.ewa import exponent, row_pixel_range
-from ..splat.bokeh import aperture_kernel
+                              insert_fragment, resolve_to_image, splat_visibility, widen_box)
+from ..splat.ewa import exponent, row_pixel_range, row_span
+from ..splat.bokeh import aperture_kernel, support_conic
 from ..splat.project import (ALPHA, AMP, BLUE, BX, BY, C11, C12, C22, DEPTH, FLOOR, GREEN, GX,
                              GY, MIX, MX, MY, N_FIELDS, N_RASTER_FIELDS, RAD, REACH, RED, RX, RY,
                              X0, X1, ZHI, ZLO, project_splat, slope_splat)
@@ -105,6 +105,9 @@ _splat_visibility = device_twin(splat_visibility)
 _row_pixel_range = device_twin(row_pixel_range)
 _exponent = device_twin(exponent)
 _aperture_kernel = device_twin(aperture_kernel)
+_support_conic = device_twin(support_conic)
+_row_span = device_twin(row_span)
+_widen_box = device_twin(widen_box)
 
 # Block sizes. The simulator runs every thread as a Python thread: smaller blocks there keep
 # the tests fast and take the multi-level scan and the global-memory sort on tiny inputs.
@@ -422,9 +425,16 @@ def _sort_keys(offsets, keys):
 @cuda.jit
 def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg_g, bg_b,
                image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1, blades, table,
-               u_c):
+               u_c, coarse):
     """One block per tile, one thread per pixel: A-buffer insert of the tile's fragments in
-    splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel)."""
+    splat order, then resolve (raster/abuffer.py's rasterize_band, pixel by pixel).
+
+    A splat of aperture radius at least coarse (``RenderSettings.coarse_blur_px``) is, as
+    on the CPU, its kernel at the samples of every second pixel (those of the tile and the
+    next tiles' first row and column) interpolated linearly: each pixel sums its samples'
+    weighted fragments into one (``_coarse_fragment``). The CPU keeps the samples' surfaces
+    and inserts them at the resolve: the same sums, the same surfaces (the z-ranges of the
+    same splats unite), another order of adding."""
     # the raster's fields only: 256 x 19 x 8 bytes = 38 KB of the 48 KB a block may hold
     batch = cuda.shared.array((PIXELS, N_RASTER_FIELDS), numba.float64)
     rows = cuda.shared.array((PIXELS, 3), numba.int32)
@@ -455,7 +465,18 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
         cuda.syncthreads()
         if inside:
             for s in range(min(PIXELS, end - base)):
-                if rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0 and batch[s, RAD] != 0.0:
+                if coarse > 0.0 and abs(batch[s, RAD]) >= coarse:
+                    if rows[s, 0] - 1 <= i <= rows[s, 1] + 1 and batch[s, AMP] > 0.0:
+                        k = rows[s, 2]
+                        cw, cr, cg, cb, own = _coarse_fragment(
+                            splats, k, rows[s, 0], rows[s, 1], i, j, width, height, blades,
+                            table, u_c)
+                        if cw > 0.0:
+                            overflows += _insert_fragment(
+                                acc, cnt, 0, cw, cr / cw, cg / cw, cb / cw, batch[s, ALPHA],
+                                batch[s, DEPTH], batch[s, ZLO], batch[s, ZHI])
+                        frags += own
+                elif rows[s, 0] <= i <= rows[s, 1] and batch[s, AMP] > 0.0 and batch[s, RAD] != 0.0:
                     # the aperture's shape (splat/bokeh.py)
                     dx, dy = j + 0.5 - batch[s, MX], i + 0.5 - batch[s, MY]
                     if batch[s, X0] <= j <= batch[s, X1] \
@@ -504,6 +525,62 @@ def _rasterize(splats, bbox, offsets, ids, n_tx, width, height, cutoff, bg_r, bg
     if tid == 0:
         tile_stats[t, 0] = counters[0]
         tile_stats[t, 1] = counters[1]
+
+
+@cuda.jit(device=True)
+def _coarse_fragment(splats, k, y_lo, y_hi, i, j, width, height, blades, table, u_c):
+    """Wide splat k at pixel (i, j) as ``abuffer.rasterize_band`` draws it from its samples:
+    (weight, weight x red, green, blue, 1 if the pixel is a sample the tile counts as a
+    fragment else 0). y_lo, y_hi: the splat's box rows (widened: ``widen_box``)."""
+    py0, px0 = (i // TILE) * TILE, (j // TILE) * TILE
+    mx, my = splats[k, MX], splats[k, MY]
+    c11, c12, c22 = splats[k, C11], splats[k, C12], splats[k, C22]
+    det = c11 * c22 - c12 * c12
+    w11, w12, w22 = c22 / det, -c12 / det, c11 / det
+    radius, mix, amp = splats[k, RAD], splats[k, MIX], splats[k, AMP]
+    b11, b12, b22 = _support_conic(w11, w12, w22, radius, u_c)
+    u, v = i - py0, j - px0
+    a0, b0 = u >> 1, v >> 1
+    a1, b1 = a0 + (u & 1), b0 + (v & 1)
+    scale = (0.5 if a1 != a0 else 1.0) * (0.5 if b1 != b0 else 1.0)
+    # the rows drawn: the box's, and a row past the image's last
+    r_lo = max(y_lo, py0)
+    r_hi = min(y_hi + (1 if y_hi == height - 1 else 0), py0 + TILE)
+    sw = sr = sg = sb = 0.0
+    own = 0
+    for a in range(a0, a1 + 1):
+        r = py0 + 2 * a
+        if r < r_lo or r > r_hi:
+            continue
+        dy = r + 0.5 - my
+        lo, hi = _row_span(dy, b11, b12, b22, 0.5)
+        if lo > hi:
+            continue
+        j0 = max(int(math.floor(mx + lo - 0.5)), int(splats[k, X0]), px0)
+        j1 = min(int(math.ceil(mx + hi - 0.5)), int(splats[k, X1]), px0 + TILE, width)
+        for b in range(b0, b1 + 1):
+            c = px0 + 2 * b
+            if c < j0 or c > j1:
+                continue
+            dx = c + 0.5 - mx
+            wk = _aperture_kernel(_exponent(dx, dy, c11, c12, c22), dx, dy, radius, w11, w12,
+                                  w22, mix, blades, table, u_c)
+            if wk > 0.0:
+                w = scale * amp * wk
+                sw += w
+                sr += w * max(splats[k, RED] + splats[k, RX] * dx + splats[k, RY] * dy, 0.0)
+                sg += w * max(splats[k, GREEN] + splats[k, GX] * dx + splats[k, GY] * dy, 0.0)
+                sb += w * max(splats[k, BLUE] + splats[k, BX] * dx + splats[k, BY] * dy, 0.0)
+                if r == i and c == j:
+                    own = 1
+    return sw, sr, sg, sb, own
+
+
+@cuda.jit
+def _widen_boxes(splats, bbox, visible, coarse):
+    k = cuda.grid(1)
+    if k < bbox.shape[0]:
+        _widen_box(splats, bbox, visible, k, coarse)
 
 
 # -- host side: buffers, scan, residency -----------------------------------------------------
@@ -815,7 +892,8 @@ def rasterize_cuda(splats, bbox, visible, offsets, ids, camera, settings, merge,
     _rasterize[n_tx * n_ty, PIXELS](splats, bbox, offsets, ids, n_tx, w, h, float(settings.cutoff),
                                     bg[0], bg[1], bg[2], image, depth, weight, tile_stats,
                                     coc_k, inv_focus, rho0, rho1, _upload(blades),
-                                    _upload(table), math.sqrt(2.0 * settings.cutoff))
+                                    _upload(table), math.sqrt(2.0 * settings.cutoff),
+                                    float(settings.coarse_blur_px))
     return image, depth, weight, tile_stats
 
 
@@ -922,6 +1000,11 @@ def _draw(source, rgb, camera, lens, settings, clock, gain=None):
 
     splats, bbox, visible = project_cuda(source, rgb, camera, lens, settings, gain)
     clock.mark("project_ms")
+    if settings.coarse_blur_px > 0.0 and bbox.shape[0]:
+        # the boxes of the splats drawn from samples reach the tiles whose samples they
+        # give (abuffer.widen_boxes)
+        _widen_boxes[_blocks(bbox.shape[0]), THREADS](splats, bbox, visible,
+                                                       float(settings.coarse_blur_px))
     offsets, ids, n_visible = bin_cuda(bbox, visible, camera.width, camera.height)
     clock.mark("bin_ms")
     merge = merge_parameters(camera, lens, settings)

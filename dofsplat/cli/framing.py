@@ -482,6 +482,7 @@ def settings_from_args(args):
                           taper=getattr(args, "taper", False),
                           lens_samples=getattr(args, "lens_samples", 1),
                           lens_parts=getattr(args, "lens_parts", "everywhere"),
+                          coarse_blur_px=getattr(args, "coarse_blur", RenderSettings.coarse_blur_px),
                           sharp_visibility=getattr(args, "sharp_visibility", False))
 
 
@@ -714,7 +715,8 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
         "lod_min_node": settings.lod_min_node, "show_lod": settings.show_lod,
         "device": settings.device, "reconstruction": settings.reconstruction,
         "taper": settings.taper, "lens_samples": settings.lens_samples,
-        "lens_parts": settings.lens_parts, "sharp_visibility": settings.sharp_visibility,
+        "lens_parts": settings.lens_parts, "coarse_blur_px": settings.coarse_blur_px,
+        "sharp_visibility": settings.sharp_visibility,
     }
     record["files"] = {"input": getattr(args, "input", None),
                        **{role: str(p) for role, p in outputs.items()}}

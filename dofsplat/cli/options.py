@@ -376,6 +376,13 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                         "parts everywhere on 16 of 18 frames and draws single surfaces and "
                         "lone points with the aperture's own shape, but costs as much or more (bench/RESULTS.md, \"The lens in "
                         "parts where needed\")")
+    p.add_argument("--coarse-blur", metavar="PX", type=non_negative,
+                   default=RenderSettings.coarse_blur_px,
+                   help="a splat blurred by an aperture of at least PX pixels' radius is drawn "
+                        "at every second pixel and interpolated (default 8: blurred frames "
+                        "0.62-0.87x their time, within 65 dB of every pixel, 0-0.4 dB further "
+                        "from the reference; 0 draws every pixel; docs/maths.md, \"Wide blurs "
+                        "at every second pixel\")")
     lod = p.add_argument_group(
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "

@@ -109,6 +109,9 @@ MERGE_REACH = 6.0
 BIN_RUNS = 64
 BIN_RUN = 16384
 NO_COLUMN = (0.0,) * 8  # a wide kernel's rows start afresh (ewa.column_start's place)
+# the coarse samples (``rasterize_band``'s coarse): every second pixel of a tile, and the
+# next tiles' first row and column
+SAMPLES = TILE // 2 + 1
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -146,6 +149,23 @@ def keep_tile_lists(offsets, ids, keep):
         if keep[t]:
             out_ids[out_offsets[t]:out_offsets[t + 1]] = ids[offsets[t]:offsets[t + 1]]
     return out_offsets, out_ids
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def widen_boxes(splats, bbox, visible, coarse):
+    """The boxes of the splats ``rasterize_band`` samples coarsely (aperture radius at least
+    coarse pixels) a pixel further up and left, so that a tile's list holds the splats of its
+    last sample row and column (the next tiles' first pixels)."""
+    for k in numba.prange(bbox.shape[0]):
+        widen_box(splats, bbox, visible, k, coarse)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def widen_box(splats, bbox, visible, k, coarse):
+    """``widen_boxes`` for splat k."""
+    if visible[k] and bbox[k, 0] <= bbox[k, 1] and abs(splats[k, RAD]) >= coarse:
+        bbox[k, 0] = max(bbox[k, 0] - 1, 0)
+        bbox[k, 2] = max(bbox[k, 2] - 1, 0)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -237,23 +257,7 @@ def _merge_into(acc, cnt, p, i, j):
 def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     """Insert one fragment into pixel p's surfaces. Returns 1 if it overflowed, else 0."""
     n = cnt[p]
-    hit = -1
-    for i in range(n):
-        if zlo <= acc[p, i, S_ZHI] and zhi >= acc[p, i, S_ZLO]:
-            hit = i
-            break
-    overflow = 0
-    if hit < 0 and n == acc.shape[1]:
-        # A-buffer full: merge into the surface whose z-range is nearest (slot 0 if no gap
-        # compares, e.g. a NaN range: never write past the last slot)
-        best = 1e300
-        hit = 0
-        for i in range(n):
-            gap = max(acc[p, i, S_ZLO] - zhi, zlo - acc[p, i, S_ZHI])
-            if gap < best:
-                best = gap
-                hit = i
-        overflow = 1
+    hit, overflow = _surface_for(acc, cnt, p, zlo, zhi)
     if hit < 0:
         acc[p, n, S_W] = w
         acc[p, n, S_WR] = w * r
@@ -274,14 +278,63 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
     acc[p, hit, S_WD] += w * d
     if a >= OPAQUE:
         acc[p, hit, S_WO] += w
+    _unite(acc, cnt, p, hit, n, zlo, zhi)
+    return overflow
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def insert_surface(acc, cnt, p, src, s, q, scale):
+    """Insert surface q of sample s of ``src`` (the A-buffer of a tile's coarse samples), its
+    weights times scale, into pixel p's surfaces, as ``insert_fragment`` inserts a
+    fragment. Returns 1 if it overflowed, else 0."""
+    zlo, zhi = src[s, q, S_ZLO], src[s, q, S_ZHI]
+    n = cnt[p]
+    hit, overflow = _surface_for(acc, cnt, p, zlo, zhi)
+    if hit < 0:
+        for f in range(S_ZLO):
+            acc[p, n, f] = scale * src[s, q, f]
+        acc[p, n, S_ZLO] = zlo
+        acc[p, n, S_ZHI] = zhi
+        cnt[p] = n + 1
+        return overflow
+    for f in range(S_ZLO):
+        acc[p, hit, f] += scale * src[s, q, f]
+    _unite(acc, cnt, p, hit, n, zlo, zhi)
+    return overflow
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _surface_for(acc, cnt, p, zlo, zhi):
+    """The surface of pixel p that a z-range joins: (its slot, 0), the first whose range it
+    overlaps, or (-1, 0) for a new one; when all MAX_SURFACES are taken, (the one whose
+    z-range is nearest, 1): slot 0 if no gap compares (a NaN range: never past the last)."""
+    n = cnt[p]
+    for i in range(n):
+        if zlo <= acc[p, i, S_ZHI] and zhi >= acc[p, i, S_ZLO]:
+            return i, 0
+    if n < acc.shape[1]:
+        return -1, 0
+    best = 1e300
+    hit = 0
+    for i in range(n):
+        gap = max(acc[p, i, S_ZLO] - zhi, zlo - acc[p, i, S_ZHI])
+        if gap < best:
+            best = gap
+            hit = i
+    return hit, 1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _unite(acc, cnt, p, hit, n, zlo, zhi):
+    """Surface hit of pixel p (of n) took in the range [zlo, zhi]: its range becomes the union,
+    and the surfaces the union now reaches merge into it (they are the same surface)."""
     lo, hi = acc[p, hit, S_ZLO], acc[p, hit, S_ZHI]
     acc[p, hit, S_ZLO] = min(lo, zlo)
     acc[p, hit, S_ZHI] = max(hi, zhi)
     if n == 1 or (zlo >= lo and zhi <= hi):
         # the pixel's only surface, or the range did not grow: the pixel's surfaces stay
         # disjoint (they always are), so nothing new can merge
-        return overflow
-    # the united range may now reach other surfaces: they are the same surface
+        return
     j = 0
     while j < cnt[p]:
         if j != hit and acc[p, j, S_ZLO] <= acc[p, hit, S_ZHI] and acc[p, j, S_ZHI] >= acc[p, hit, S_ZLO]:
@@ -292,7 +345,27 @@ def insert_fragment(acc, cnt, p, w, r, g, b, a, d, zlo, zhi):
             j = 0
             continue
         j += 1
-    return overflow
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def add_samples(acc, cnt, p, sacc, scnt, u, v, rows, cols):
+    """Pixel p (row u, column v of its tile) takes the coarse samples around it: the grid
+    of every second pixel (``SAMPLES`` x ``SAMPLES`` a tile, its last row and column the
+    next tiles' first), interpolated linearly (an even pixel is a sample, an odd one the
+    mean of the two beside it); rows, cols: the sample rows and columns drawn (those of the
+    image and one past its last row and column). Returns the overflows."""
+    a0, b0 = u >> 1, v >> 1
+    a1 = a0 + (u & 1) if a0 + (u & 1) < rows else a0
+    b1 = b0 + (v & 1) if b0 + (v & 1) < cols else b0
+    wa = 0.5 if a1 != a0 else 1.0
+    wb = 0.5 if b1 != b0 else 1.0
+    overflows = 0
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            s = a * SAMPLES + b
+            for q in range(scnt[s]):
+                overflows += insert_surface(acc, cnt, p, sacc, s, q, wa * wb)
+    return overflows
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -727,7 +800,7 @@ def resolve_pixel(acc, cnt, p, bg_r, bg_g, bg_b, out, order, scratch, coc_k, inv
 @numba.njit(cache=True, nogil=True, parallel=True)
 def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                    background, image, depth, weight, tile_stats, coc_k, inv_focus, rho0, rho1,
-                   blades, table, u_c, pool):
+                   blades, table, u_c, pool, coarse):
     """Rasterise and resolve the tiles of one band (tile rows ty0..) into the output images.
 
     image: (H, W, 4) float32; depth, weight: (H, W) float32; tile_stats: (n_tiles, 2) int64
@@ -736,6 +809,11 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     threads' tile buffers, at least numba's thread count (``numba.config.NUMBA_NUM_THREADS``,
     read by the caller: read here it would be a constant of the cached machine code, and a
     process with more threads than the one that compiled it would write past the buffers).
+    coarse: a splat whose aperture radius is at least this many pixels (``RAD``; 0: none)
+    is drawn at every second pixel only, into an A-buffer of those samples, which each
+    pixel then takes interpolated linearly (``add_samples``); its box must reach a pixel
+    further up and left (``widen_boxes``), so that the tile holds every splat of the
+    samples it shares with the next tiles.
     """
     n_tiles = offsets.shape[0] - 1
     bg_r, bg_g, bg_b = background[0], background[1], background[2]
@@ -755,6 +833,9 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
     ress = np.empty((pool, 7 + LINE_PAD), np.float64)
     orders = np.empty((pool, MAX_SURFACES + LINE_PAD), np.int64)
     scratches = np.empty((pool, RESOLVE_SCRATCH + LINE_PAD), np.float64)
+    n_samples = SAMPLES * SAMPLES if coarse > 0.0 else 1
+    saccs = np.empty((pool, n_samples, MAX_SURFACES, N_ACC), np.float64)
+    scnts = np.empty((pool, n_samples + LINE_PAD), np.int64)
     n_rows = n_tiles // n_tx
     stride = weyl_stride(n_rows)
     for u in numba.prange(n_tiles):
@@ -766,6 +847,9 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
         me = numba.get_thread_id()
         acc, cnt, cell, frac = accs[me], cnts[me, :TILE * TILE], cells[me], fracs[me]
         cnt[:] = 0
+        sacc, scnt = saccs[me], scnts[me, :n_samples]
+        scnt[:] = 0
+        sampled = False
         frags = 0
         overflows = 0
         for slot in range(offsets[t], offsets[t + 1]):
@@ -783,6 +867,51 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
             radius = splats[k, RAD]
+            if coarse > 0.0 and abs(radius) >= coarse:
+                # a wide blur: the aperture kernel at the samples (every second pixel of the
+                # tile, and of the next tiles' first row and column)
+                det = c11 * c22 - c12 * c12
+                w11, w12, w22 = c22 / det, -c12 / det, c11 / det
+                mix = splats[k, MIX]
+                b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
+                # the box's rows, a row past the image's last (a sample there serves its
+                # last row of pixels)
+                a_lo = (max(bbox[k, 2], py0) - py0 + 1) >> 1
+                a_hi = (min(bbox[k, 3] + (bbox[k, 3] == height - 1), py0 + TILE) - py0) >> 1
+                if round_aperture and a_hi >= a_lo:
+                    aperture_rows(cell, frac, a_hi - a_lo + 1, px0 + 0.5 - mx,
+                                  py0 + 2 * a_lo + 0.5 - my, radius, c11, c12, c22, w11, w12,
+                                  w22, mix, u_c, 2.0)
+                for sa in range(a_lo, a_hi + 1):
+                    i = py0 + 2 * sa
+                    dy = i + 0.5 - my
+                    lo, hi = row_span(dy, b11, b12, b22, 0.5)
+                    if lo > hi:
+                        continue
+                    j0 = max(int(math.floor(mx + lo - 0.5)), x0, px0)
+                    j1 = min(int(math.ceil(mx + hi - 0.5)), x1, px0 + TILE, width)
+                    for sb in range((j0 - px0 + 1) >> 1, ((j1 - px0) >> 1) + 1):
+                        dx = px0 + 2 * sb + 0.5 - mx
+                        if round_aperture:
+                            e = (sa - a_lo) * TILE + sb
+                            wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
+                        else:
+                            wk = aperture_value(
+                                c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy,
+                                w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy,
+                                dx, dy, radius, mix, blades, table, u_c, c11, w11)
+                        if wk > 0.0:
+                            overflows += insert_fragment(
+                                sacc, scnt, sa * SAMPLES + sb, amp * wk,
+                                max(r + rx * dx + ry * dy, 0.0), max(g + gx * dx + gy * dy, 0.0),
+                                max(b + bx * dx + by * dy, 0.0), a, d, zlo, zhi)
+                            # the next tiles' samples are theirs to count, and those
+                            # past the image's edge no one's
+                            if sa < SAMPLES - 1 and sb < SAMPLES - 1 and i < height \
+                                    and px0 + 2 * sb < width:
+                                frags += 1
+                            sampled = True
+                continue
             if radius != 0.0:
                 # the aperture's shape (splat/bokeh.py): the scales of the tile's rows in SIMD
                 # lanes, then a table look-up per fragment
@@ -793,7 +922,7 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 ia, ib = max(bbox[k, 2], py0), min(bbox[k, 3], py1)
                 if round_aperture:
                     aperture_rows(cell, frac, ib - ia + 1, px0 + 0.5 - mx, ia + 0.5 - my,
-                                  radius, c11, c12, c22, w11, w12, w22, mix, u_c)
+                                  radius, c11, c12, c22, w11, w12, w22, mix, u_c, 1.0)
                 for i in range(ia, ib + 1):
                     # the row's span over the support's bounding ellipse, a pixel wider
                     lo, hi = row_span(i + 0.5 - my, b11, b12, b22, 0.5)
@@ -880,9 +1009,15 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                     p += 1
         res, order, scratch = ress[me], orders[me], scratches[me]
         layers = 0
+        # the samples drawn: those of the image and one row and column past it
+        s_rows = min(SAMPLES, ((height - py0) >> 1) + 1)
+        s_cols = min(SAMPLES, ((width - px0) >> 1) + 1)
         for i in range(py0, py1 + 1):
             for j in range(px0, px1 + 1):
                 p = (i - py0) * TILE + (j - px0)
+                if sampled:
+                    overflows += add_samples(acc, cnt, p, sacc, scnt, i - py0, j - px0,
+                                             s_rows, s_cols)
                 layers = max(layers, cnt[p])
                 resolve_to_image(acc, cnt, p, bg_r, bg_g, bg_b, res, order, scratch,
                                  image, depth, weight, i, j, coc_k, inv_focus, rho0, rho1)

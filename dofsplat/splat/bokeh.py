@@ -238,10 +238,12 @@ ROW = 1 << ROW_SHIFT  # the rows of ``aperture_rows`` are this many pixels wide 
 
 
 @numba.njit(cache=True, nogil=True, fastmath=ROW_FASTMATH, error_model="numpy")
-def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w22, mix, u_c):
+def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w22, mix, u_c,
+                  step):
     """The table cells (``table_index``) of ``aperture_value`` (round aperture) at ROW x rows
-    pixels, offsets (dx0 + j, dy0 + i): cell[e] and frac[0, e], frac[1, e] with
-    e = i ROW + j; ``table_lerp`` reads the kernel from them.
+    pixels, offsets (dx0 + step j, dy0 + step i): cell[e] and frac[0, e], frac[1, e] with
+    e = i ROW + j; ``table_lerp`` reads the kernel from them. step: 1, or 2 for the coarse
+    samples of ``abuffer.rasterize_band``.
 
     One flat loop over whole rows, each pixel from its offset (no forward differences, which
     chain one pixel to the next) and without a branch, so that it runs in SIMD lanes; the
@@ -252,7 +254,7 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
     # conversion to float64 on the way, cost all of that back.
     f32 = np.float32
     rad = f32(abs(radius))  # a disc is its own image turned by 180 degrees
-    x0, y0 = f32(dx0), f32(dy0)
+    x0, y0, st = f32(dx0), f32(dy0), f32(step)
     a11, a12, a22 = f32(c11), f32(c12), f32(c22)
     v11, v12, v22 = f32(w11), f32(w12), f32(w22)
     m, uc = f32(mix), f32(u_c)
@@ -260,8 +262,8 @@ def aperture_rows(cell, frac, rows, dx0, dy0, radius, c11, c12, c22, w11, w12, w
     sb = f32((TABLE_B - 1) / B_MAX)
     bmax, top = f32(B_MAX), f32(TABLE_U - 1)
     for e in range(rows * ROW):
-        dx = x0 + f32(e & (ROW - 1))
-        dy = y0 + f32(e >> ROW_SHIFT)
+        dx = x0 + st * f32(e & (ROW - 1))
+        dy = y0 + st * f32(e >> ROW_SHIFT)
         r2 = dx * dx + dy * dy
         centre = r2 <= f32(0.0)
         q2 = a11 if centre else a11 * dx * dx + f32(2.0) * a12 * dx * dy + a22 * dy * dy
