@@ -401,7 +401,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="draw a node when its own blur is at most K times the depth-of-"
                           "field blur (variance): 0.35 (default) keeps textures and contacts "
                           "close to the exact picture (0-3.6 dB from --no-lod on the fidelity "
-                          "suite, 0.5-10 dB at 1) for 1.4-3.2x a pinhole frame at a 40-pixel "
+                          "suite, 0.5-10 dB at 1) for 1.4-3.0x a pinhole frame at a 40-pixel "
                           "blur; 1 (with --lod-min-node 2) is the paper's rule, faster and "
                           "softer")
     lod.add_argument("--lod-color-tolerance", metavar="T", type=tolerance,
