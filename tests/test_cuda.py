@@ -155,14 +155,26 @@ def test_frame_matches_cpu(scene, aperture, parts, lod):
         parts = 2  # the same kernels as 4 parts, in half the simulator's time (CI)
     settings = ds.RenderSettings(lod=lod, lens_samples=parts, lod_blur_fraction=1.0)
     cpu = ds.render(surfels, camera, _lens(aperture), settings)
-    if aperture >= 2.0:  # the wide blurs drawn from the coarse samples are tested too
-        fine = ds.render(surfels, camera, _lens(aperture), replace(settings, coarse_blur_px=0.0))
-        assert np.abs(fine.image - cpu.image).max() > 1e-4
     gpu = ds.render(surfels, camera, _lens(aperture), replace(settings, device="cuda"))
     assert gpu.stats["device"] == "cuda"
     assert gpu.stats["lens_samples"] == cpu.stats["lens_samples"] == (parts if aperture else 1)
     if lod and aperture == APERTURES[-1] and parts == 1:
         assert cpu.stats["splats_selected"] < len(surfels)  # the cut has inner nodes
+    _assert_same_frame(cpu, gpu)
+
+
+@needs_cuda
+def test_wide_blurs_from_samples_match_cpu(scene):
+    """A blur wide enough (A = 6, one pass) that splats of an aperture radius of 8 px or more
+    are drawn from the coarse samples (``RenderSettings.coarse_blur_px``; the CPU frame
+    differs from the one drawn at every pixel by 0.011): each GPU pixel sums its samples'
+    fragments (``cuda._coarse_fragment``), the CPU interpolates its samples' surfaces."""
+    surfels, camera = scene
+    settings = ds.RenderSettings(lod=False)
+    cpu = ds.render(surfels, camera, _lens(6.0), settings)
+    fine = ds.render(surfels, camera, _lens(6.0), replace(settings, coarse_blur_px=0.0))
+    assert np.abs(fine.image - cpu.image).max() > 1e-3
+    gpu = ds.render(surfels, camera, _lens(6.0), replace(settings, device="cuda"))
     _assert_same_frame(cpu, gpu)
 
 
