@@ -7,8 +7,9 @@ CPU (no GPU, no numba-cuda). NUMBA_ENABLE_CUDASIM is read when numba is first im
 holds for the process, hence a second pytest; the option sets it (and
 DOFSPLAT_TEST_CUDASIM, DOFSPLAT_REQUIRE_CUDA: the simulator must load; DOFSPLAT_MAX_SKIPS=0:
 nothing may skip) before any test module imports numba. Every CUDA thread is a Python thread
-there, so of the whole-frame tests only the surfels' one with 4 lens parts and LOD and the
-Gaussians' default frame run: with the stage tests they launch every kernel of
+there, so of the whole-frame tests only the surfels' one with the lens in parts (2 on the
+simulator) and LOD, the wide blurs' one-pass frame and the Gaussians' default frame run:
+with the stage tests they launch every kernel of
 dofsplat/backends/cuda.py and cuda_gauss.py, which the module's last parity test checks.
 """
 

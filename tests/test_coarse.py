@@ -67,7 +67,7 @@ def test_wide_blurs_from_samples_draw_the_contact_as_every_pixel_does():
     at the contact: the interpolated sphere's z-range there spans the samples', and merges
     with the floor; docs/maths.md, "Wide blurs at every second pixel"); the bound, 65 dB,
     fails at 4 px. And it draws fewer fragments (0.998 of the fine frame's here, where the
-    widest blur is 19 px; 0.5 at 40 px on the fidelity suite)."""
+    widest blur is 19 px; 0.36-0.68 at 40 px on the fidelity suite)."""
     s, cam, lens = demo.contact_scene(192, 144)
     lens = ds.ThinLens(focus_distance=lens.focus_distance, aperture=0.3)
     fine = ds.render(s, cam, lens, ds.RenderSettings(coarse_blur_px=0.0))

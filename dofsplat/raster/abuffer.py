@@ -867,51 +867,6 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
             floor = splats[k, FLOOR]
             x0, x1 = int(splats[k, X0]), int(splats[k, X1])
             radius = splats[k, RAD]
-            if coarse > 0.0 and abs(radius) >= coarse:
-                # a wide blur: the aperture kernel at the samples (every second pixel of the
-                # tile, and of the next tiles' first row and column)
-                det = c11 * c22 - c12 * c12
-                w11, w12, w22 = c22 / det, -c12 / det, c11 / det
-                mix = splats[k, MIX]
-                b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
-                # the box's rows, a row past the image's last (a sample there serves its
-                # last row of pixels)
-                a_lo = (max(bbox[k, 2], py0) - py0 + 1) >> 1
-                a_hi = (min(bbox[k, 3] + (bbox[k, 3] == height - 1), py0 + TILE) - py0) >> 1
-                if round_aperture and a_hi >= a_lo:
-                    aperture_rows(cell, frac, a_hi - a_lo + 1, px0 + 0.5 - mx,
-                                  py0 + 2 * a_lo + 0.5 - my, radius, c11, c12, c22, w11, w12,
-                                  w22, mix, u_c, 2.0)
-                for sa in range(a_lo, a_hi + 1):
-                    i = py0 + 2 * sa
-                    dy = i + 0.5 - my
-                    lo, hi = row_span(dy, b11, b12, b22, 0.5)
-                    if lo > hi:
-                        continue
-                    j0 = max(int(math.floor(mx + lo - 0.5)), x0, px0)
-                    j1 = min(int(math.ceil(mx + hi - 0.5)), x1, px0 + TILE, width)
-                    for sb in range((j0 - px0 + 1) >> 1, ((j1 - px0) >> 1) + 1):
-                        dx = px0 + 2 * sb + 0.5 - mx
-                        if round_aperture:
-                            e = (sa - a_lo) * TILE + sb
-                            wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
-                        else:
-                            wk = aperture_value(
-                                c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy,
-                                w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy,
-                                dx, dy, radius, mix, blades, table, u_c, c11, w11)
-                        if wk > 0.0:
-                            overflows += insert_fragment(
-                                sacc, scnt, sa * SAMPLES + sb, amp * wk,
-                                max(r + rx * dx + ry * dy, 0.0), max(g + gx * dx + gy * dy, 0.0),
-                                max(b + bx * dx + by * dy, 0.0), a, d, zlo, zhi)
-                            # the next tiles' samples are theirs to count, and those
-                            # past the image's edge no one's
-                            if sa < SAMPLES - 1 and sb < SAMPLES - 1 and i < height \
-                                    and px0 + 2 * sb < width:
-                                frags += 1
-                            sampled = True
-                continue
             if radius != 0.0:
                 # the aperture's shape (splat/bokeh.py): the scales of the tile's rows in SIMD
                 # lanes, then a table look-up per fragment
@@ -919,6 +874,47 @@ def rasterize_band(splats, bbox, offsets, ids, n_tx, ty0, width, height, cutoff,
                 w11, w12, w22 = c22 / det, -c12 / det, c11 / det
                 mix = splats[k, MIX]
                 b11, b12, b22 = support_conic(w11, w12, w22, radius, u_c)
+                if coarse > 0.0 and abs(radius) >= coarse:
+                    # a wide blur: the kernel at the samples (every second pixel of the tile,
+                    # and of the next tiles' first row and column), over the box's rows and a
+                    # row past the image's last (a sample there serves its last row of pixels)
+                    a_lo = (max(bbox[k, 2], py0) - py0 + 1) >> 1
+                    a_hi = (min(bbox[k, 3] + (bbox[k, 3] == height - 1), py0 + TILE) - py0) >> 1
+                    if round_aperture and a_hi >= a_lo:
+                        aperture_rows(cell, frac, a_hi - a_lo + 1, px0 + 0.5 - mx,
+                                      py0 + 2 * a_lo + 0.5 - my, radius, c11, c12, c22, w11,
+                                      w12, w22, mix, u_c, 2.0)
+                    for sa in range(a_lo, a_hi + 1):
+                        i = py0 + 2 * sa
+                        dy = i + 0.5 - my
+                        lo, hi = row_span(dy, b11, b12, b22, 0.5)
+                        if lo > hi:
+                            continue
+                        j0 = max(int(math.floor(mx + lo - 0.5)), x0, px0)
+                        j1 = min(int(math.ceil(mx + hi - 0.5)), x1, px0 + TILE, width)
+                        for sb in range((j0 - px0 + 1) >> 1, ((j1 - px0) >> 1) + 1):
+                            dx = px0 + 2 * sb + 0.5 - mx
+                            if round_aperture:
+                                e = (sa - a_lo) * TILE + sb
+                                wk = table_lerp(cell[e], frac[0, e], frac[1, e], flat)
+                            else:
+                                wk = aperture_value(
+                                    c11 * dx * dx + 2.0 * c12 * dx * dy + c22 * dy * dy,
+                                    w11 * dx * dx + 2.0 * w12 * dx * dy + w22 * dy * dy,
+                                    dx, dy, radius, mix, blades, table, u_c, c11, w11)
+                            if wk > 0.0:
+                                overflows += insert_fragment(
+                                    sacc, scnt, sa * SAMPLES + sb, amp * wk,
+                                    max(r + rx * dx + ry * dy, 0.0),
+                                    max(g + gx * dx + gy * dy, 0.0),
+                                    max(b + bx * dx + by * dy, 0.0), a, d, zlo, zhi)
+                                # the next tiles' samples are theirs to count, and those
+                                # past the image's edge no one's
+                                if sa < SAMPLES - 1 and sb < SAMPLES - 1 and i < height \
+                                        and px0 + 2 * sb < width:
+                                    frags += 1
+                                sampled = True
+                    continue
                 ia, ib = max(bbox[k, 2], py0), min(bbox[k, 3], py1)
                 if round_aperture:
                     aperture_rows(cell, frac, ib - ia + 1, px0 + 0.5 - mx, ia + 0.5 - my,
