@@ -312,6 +312,54 @@ def test_coarse_layers_stay_near_the_parts_drawn_whole():
     assert psnr(image, whole) > 38.0
 
 
+def test_layers_never_read_an_unwritten_tile():
+    """``composite_images`` leaves an empty tile that is not live unwritten, and
+    ``combine_layers`` must then never read it (``layer_listed_over``: a sample's taps span
+    at most two tiles per axis, each listed or a listed one's neighbour). The layer images
+    filled with NaN before compositing: the frame has no NaN and is the frame from images
+    whose every tile is written, bit for bit. A sparse scene on a wide frame, so that most
+    tiles of every layer's image are not live, at every scale from 1 to 1/16."""
+    from dofsplat.backends import cpu_gauss as cg
+    from dofsplat.colors import linear_to_srgb
+    from dofsplat.frame import lens_parts
+    from dofsplat.gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_WIDTH, bin_images,
+                                       combine_layers, composite_images, live_tiles)
+
+    g = scene(n=80, seed=5, degree=1, spread=1.0)
+    cam = camera(256, 192, distance=4.0)
+    lens = ds.ThinLens(focus_distance=4.0, aperture=4.0)
+    st = ds.RenderSettings(gaussian_lod=False)
+    parts = lens_parts(cam, lens, dataclasses.replace(st, lens_samples=4))
+    arrays, layers = cg.in_layers(g, cam, lens, parts, st, False)
+    views, campos, cameras, spans, table, part_layers = cg.layer_plan(
+        len(arrays), layers, cam, lens, parts, st)
+    assert set(table[:, 2]) == {1, 2, 4, 8, 16}  # IM_SCALE: every scale drawn
+    rows, boxes, visible = cg.project_plan(arrays, views, campos, cameras, spans, table)
+    offsets, ids, tile_image = bin_images(table, np.arange(len(rows), dtype=np.int32), boxes,
+                                          visible)
+    live = live_tiles(offsets, table, tile_image)
+    assert live.mean() < 0.5
+    n_px = int(table[-1, IM_PIXEL0] + table[-1, IM_WIDTH] * table[-1, IM_HEIGHT])
+    bg = linear_to_srgb(np.asarray(st.background, np.float64))
+    frames = []
+    for written in (live, np.ones_like(live)):
+        color, trans, depth = (np.full((n_px, 3), np.nan, np.float32),
+                               np.full(n_px, np.nan, np.float32),
+                               np.full(n_px, np.nan, np.float32))
+        composite_images(rows, boxes, offsets, ids, tile_image, table, written, color, trans,
+                         depth, cg.NO_SEEN)
+        h, w = cam.height, cam.width
+        image, out_depth = np.empty((h, w, 4), np.float32), np.empty((h, w), np.float32)
+        combine_layers(table, offsets, part_layers, color, trans, depth, bg,
+                       np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32),
+                       out_depth, image)
+        frames.append((image, out_depth, np.isnan(trans).mean()))
+    assert frames[0][2] > 0.5 and frames[1][2] == 0.0  # most pixels unwritten, then none
+    assert not np.isnan(frames[0][0]).any() and not np.isnan(frames[0][1]).any()
+    np.testing.assert_array_equal(frames[0][0], frames[1][0])
+    np.testing.assert_array_equal(frames[0][1], frames[1][1])
+
+
 def test_a_hidden_gaussian_does_not_bleed_through_a_blurred_sheet():
     """Focused far behind the sheet, the sheet is blurred by about 10 px; the red Gaussian
     hidden behind its middle must not show through it (the truth: the 64-sample reference

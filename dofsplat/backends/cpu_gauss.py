@@ -227,13 +227,13 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     color = np.empty((n_px, 3), np.float32)
     trans = np.empty(n_px, np.float32)
     depth = np.empty(n_px, np.float32)
-    composite_images(rows, boxes, offsets, ids, tile_image, table, color, trans, depth,
-                     NO_SEEN)
+    composite_images(rows, boxes, offsets, ids, tile_image, table,
+                     live_tiles(offsets, table, tile_image), color, trans, depth, NO_SEEN)
     stats["composite_ms"] = _ms(t)
     t = time.perf_counter()
     out_depth = np.empty((h, w), np.float32)
     image = np.empty((h, w, 4), np.float32)
-    combine_layers(table, live_tiles(offsets, table, tile_image), part_layers, color, trans,
+    combine_layers(table, offsets, part_layers, color, trans,
                    depth, linear_to_srgb(np.asarray(settings.background, np.float64)),
                    np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
                    image)
@@ -440,8 +440,9 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     offsets, ids, tile_image = bin_images(table, view_order, view_boxes, view_visible)
     n_px = m * w * h
     seen = np.zeros((numba.get_num_threads() + 1, m * n), np.float32)
+    # (only seen is read: no empty tile is written)
     composite_images(view_rows, view_boxes, offsets, ids, tile_image, table,
-                     np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
+                     np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
                      np.empty(n_px, np.float32), seen)
     best = np.empty(n, np.float32)
     best_view_shares(view_rows, view_visible, seen, n, best)

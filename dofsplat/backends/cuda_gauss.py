@@ -11,7 +11,7 @@ compiles the CPU's own functions again as device functions:
     project_gaussian (gauss/project.py, with sh_color), project_shifted_view and
     move_footprint; gaussian_alpha, blend, start_pixel, seen_share, lens_share,
     best_view_share, finish_pixel with srgb_value_to_linear (gauss/composite.py);
-    project_layer_row, mark_live, layer_live_over, layer_sample, over_pixel
+    project_layer_row, mark_live, layer_listed_over, layer_sample, over_pixel
     (gauss/layers.py)
 
 What is written here is only the parallel structure around them. Every pass is drawn as
@@ -30,12 +30,13 @@ layers of every lens part, the lens visibility's views), as the CPU's ``bin_imag
   camera) need not repeat where they tie or round apart;
 * composite: one block per 16 x 16 tile of any image, one thread per pixel, the tile's rows
   loaded into shared memory in batches and blended in order (``gaussian_alpha``,
-  ``blend``); the block stops when all its pixels are done. With lens visibility each pixel
+  ``blend``); the block stops when all its pixels are done. An empty tile that is not
+  live (``live_tiles``: one thread per tile) is left unwritten, as on the CPU; With lens visibility each pixel
   adds the alpha T it saw to its row's total (an atomic add, where the CPU keeps a row per
   thread: the shares differ by float rounding only);
 * the layers joined (``combine_layers``): one thread per pixel of the frame, each part's
-  layers front to back (``over_pixel``), a layer skipped where the tile its sample starts
-  in is not live (``live_tiles``: one thread per tile), which changes nothing, as on the CPU.
+  layers front to back (``over_pixel``), a layer skipped where no tile its sample reads
+  lists a Gaussian (``layer_listed_over``), which changes nothing, as on the CPU.
 
 The LOD cut and the layer order are the CPU's (``cpu_gauss.in_layers``, ``lod_cut``): the
 Gaussians they gather are uploaded each frame. A scene drawn as it is (a pinhole, or no LOD
@@ -61,7 +62,7 @@ from ..gauss.composite import (MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_
                                best_view_share, blend, finish_pixel, gaussian_alpha,
                                lens_share, seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
-                            IM_TILE0, IM_WIDTH, image_table, layer_live_over, layer_sample,
+                            IM_TILE0, IM_WIDTH, image_table, layer_listed_over, layer_sample,
                             mark_live, over_pixel, project_layer_row)
 from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_OPACITY,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian,
@@ -85,7 +86,7 @@ _lens_share = device_twin(lens_share)
 _best_view_share = device_twin(best_view_share)
 _finish_pixel = device_twin(finish_pixel)
 _mark_live = device_twin(mark_live)
-_layer_live_over = device_twin(layer_live_over)
+_layer_listed_over = device_twin(layer_listed_over)
 _layer_sample = device_twin(layer_sample)
 _over_pixel = device_twin(over_pixel)
 
@@ -175,17 +176,20 @@ def _fill_keys(images, row_image, boxes, visible, depth_bits, by_depth, cursor, 
 
 
 @cuda.jit
-def _composite(rows, boxes, offsets, keys, tile_image, images, color, trans, depth, seen,
-               track):
+def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, trans, depth,
+               seen, track):
     """One block per tile of any image, one thread per pixel: the tile's rows in key order,
     blended front to back (``gauss.layers.composite_images``, pixel by pixel) into color
-    (P, 3), trans (P,), depth (P,) from the image's IM_PIXEL0."""
+    (P, 3), trans (P,), depth (P,) from the image's IM_PIXEL0; an empty tile is written
+    (T = 1) only where live (T,) (``live_tiles``), or everywhere where live is (0,)."""
     batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float32)
     box = cuda.shared.array((PIXELS, 4), numba.int32)
     gid = cuda.shared.array(PIXELS, numba.int32)
     state = cuda.local.array((1, N_STATE), numba.float64)
     t = cuda.blockIdx.x
     tid = cuda.threadIdx.x
+    if live.shape[0] > 0 and offsets[t + 1] == offsets[t] and not live[t]:
+        return  # never read (the whole block leaves, before any barrier)
     i = tile_image[t]
     width, height = images[i, IM_WIDTH], images[i, IM_HEIGHT]
     n_tx = -(-width // TILE)
@@ -243,11 +247,12 @@ def _live_tiles(offsets, images, tile_image, live):
 
 
 @cuda.jit
-def _combine_layers(images, live, part_layers, color, trans, depth, bg, out_color, out_trans,
-                    out_depth, image):
+def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_color,
+                    out_trans, out_depth, image):
     """One thread per pixel of the frame: ``gauss.layers.combine_layers``, each part's layers
-    joined front to back (``over_pixel``), a layer whose sample starts in a tile that is not
-    live skipped (it holds nothing there), then the frame (``finish_pixel``)."""
+    joined front to back (``over_pixel``), a layer none of whose tiles that the pixel's
+    sample reads lists a Gaussian skipped (it holds nothing there: ``layer_listed_over``),
+    then the frame (``finish_pixel``)."""
     total = cuda.local.array((1, 4), numba.float64)  # r, g, b, T summed over the parts
     t_acc = cuda.local.array(1, numba.float64)
     d = cuda.local.array(1, numba.float64)
@@ -268,7 +273,7 @@ def _combine_layers(images, live, part_layers, color, trans, depth, bg, out_colo
             i = part_layers[k, j]
             if i < 0 or t_acc[0] <= MIN_TRANSMITTANCE:
                 break
-            if _layer_live_over(images, live, i, x, y, x + 1, y + 1):
+            if _layer_listed_over(images, offsets, i, x, y, x + 1, y + 1):
                 inv = 1.0 / images[i, IM_SCALE]
                 col, ax = _layer_sample(x, inv, images[i, IM_MARGIN])
                 row, ay = _layer_sample(y, inv, images[i, IM_MARGIN])
@@ -449,10 +454,11 @@ def bin_cuda(images: DeviceImages, rows, boxes, visible, by_depth: bool = True):
 
 
 def composite_cuda(rows, boxes, offsets, keys, images: DeviceImages, prefix: str = "g",
-                   seen=None):
+                   seen=None, live=None):
     """(color (P, 3), transmittance (P,), depth (P,)) on the GPU, every image's pixels from
     its IM_PIXEL0, in buffers named by prefix; seen: a float32 device array to add each
-    row's alpha T into, or None."""
+    row's alpha T into, or None; live: a bool device array (T,), the empty tiles to write
+    (``live_tiles``), or None for all."""
     n_px = images.n_pixels
     color = _WS.get(f"{prefix}.color", (n_px, 3), np.float32)
     trans = _WS.get(f"{prefix}.trans", (n_px,), np.float32)
@@ -460,9 +466,12 @@ def composite_cuda(rows, boxes, offsets, keys, images: DeviceImages, prefix: str
     track = seen is not None
     if seen is None:
         seen = _WS.get("g.no_seen", (0,), np.float32)
+    if live is None:
+        live = _WS.get("g.all_live", (0,), np.bool_)
     if images.n_tiles:
         _composite[images.n_tiles, PIXELS](rows, boxes, offsets, keys, images.tile_image,
-                                           images.table, color, trans, depth, seen, track)
+                                           images.table, live, color, trans, depth, seen,
+                                           track)
     return color, trans, depth
 
 
@@ -554,7 +563,9 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
     offsets, keys, _ = bin_cuda(images, view_rows, view_boxes, view_visible)
     seen = _WS.get("g.seen", (m * n,), np.float32)
     _fill[_blocks(m * n), THREADS](seen, 0.0)
-    composite_cuda(view_rows, view_boxes, offsets, keys, images, "g.small", seen)
+    no_tile = _WS.get("g.no_tile", (images.n_tiles,), np.bool_)  # only seen is read
+    _fill[_blocks(images.n_tiles), THREADS](no_tile, False)
+    composite_cuda(view_rows, view_boxes, offsets, keys, images, "g.small", seen, no_tile)
     _best_view_shares[_blocks(n), THREADS](view_rows, view_visible, seen.reshape(1, m * n), n,
                                            best)
     return best
@@ -594,13 +605,13 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
             _upload(spans), bool(settings.gaussian_antialiased), images.table,
             images.row_image, rows, boxes, visible)
     offsets, keys, totals = bin_cuda(images, rows, boxes, visible, by_depth=False)
-    color, trans, depth = composite_cuda(rows, boxes, offsets, keys, images)
     live = _WS.get("g.live", (images.n_tiles,), np.bool_)
     _fill[_blocks(images.n_tiles), THREADS](live, False)
     _live_tiles[_blocks(images.n_tiles), THREADS](offsets, images.table, images.tile_image,
                                                   live)
+    color, trans, depth = composite_cuda(rows, boxes, offsets, keys, images, live=live)
     _combine_layers[_blocks(h * w), THREADS](
-        images.table, live, _upload(part_layers), color, trans, depth, bg,
+        images.table, offsets, _upload(part_layers), color, trans, depth, bg,
         _WS.get("g.out.color", (h, w, 3), np.float32), _WS.get("g.out.trans", (h, w), np.float32),
         out_depth, image)
     stats = dict(zip(("tile_pairs", "splats_rendered", "fragments"), totals))
