@@ -45,6 +45,7 @@ import numpy as np
 
 from .. import cache
 from ..errors import DofsplatError
+from ..jit import numba
 
 MORTON_BITS = 21  # per axis: 63-bit keys
 FORMAT_VERSION = 1  # bump when build_tree or the stored arrays change: old files are rebuilt
@@ -321,34 +322,94 @@ def cached_tree(scene) -> GaussianTree:
 
 def select_cut(tree: GaussianTree, view: np.ndarray, fx: float, near: float, coc_k: float,
                inv_focus: float, blur_variance: float, fraction: float) -> np.ndarray:
-    """The rows of the tree drawn for this frame (module docstring). view: (4, 4) world to
-    the camera's z-forward frame; C_r(z) = coc_k |1/z - 1/P|; fraction: the stop, a node's
-    variance over the blur's."""
-    top = tree.n_levels - 1
-    candidates = np.arange(tree.offsets[top], tree.offsets[top + 1])
-    drawn = []
-    for level in range(top, -1, -1):
-        if level == 0:
-            drawn.append(candidates)
-            break
-        p = tree.positions[candidates].astype(np.float64)
-        z = p @ view[2, :3] + view[2, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            coc = coc_k * np.abs(1.0 / z - inv_focus)
-            size = fx * tree.extent[candidates] / z
-        stop = (z > near) & (size * size <= fraction * blur_variance * coc * coc)
-        drawn.append(candidates[stop])
-        local = candidates[~stop] - tree.offsets[level]
-        below = tree.offsets[level - 1]
-        n_below = tree.offsets[level] - below
-        children = np.concatenate([2 * local, 2 * local + 1])
-        candidates = np.sort(below + children[children < n_below])
-    return np.concatenate(drawn)
+    """The rows of the tree drawn for this frame (module docstring), int64: each level's
+    stopped nodes from the top down, in index order, then the leaves reached (``walk_cut``;
+    ``gauss.slow.select_cut`` is its numpy twin). view: (4, 4) world to the camera's
+    z-forward frame; C_r(z) = coc_k |1/z - 1/P|; fraction: the stop, a node's variance over
+    the blur's."""
+    rows = np.empty(tree.offsets[1], np.int64)  # a cut has at most the scene's rows
+    n = walk_cut(tree.positions, tree.extent, tree.offsets, np.asarray(view, np.float64),
+                 float(fx), float(near), float(coc_k), float(inv_focus),
+                 float(fraction * blur_variance), rows)
+    return rows[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def walk_cut(positions, extent, offsets, view, fx, near, coc_k, inv_focus, limit, rows):
+    """``select_cut``'s walk, level by level from the top, the candidates of a level in index
+    order (a node's children follow it in order, so each level's list stays sorted): a node
+    stops where size^2 <= limit C_r^2 in front of the near plane, else its children are
+    the next level's candidates; every candidate of level 0 is drawn. Writes the rows in
+    order; returns how many."""
+    top = offsets.shape[0] - 2
+    queue = np.empty(offsets[1], np.int64)
+    nxt = np.empty(offsets[1], np.int64)
+    n_queue = offsets[top + 1] - offsets[top]
+    for k in range(n_queue):
+        queue[k] = offsets[top] + k
+    n = 0
+    for level in range(top, 0, -1):
+        below = offsets[level - 1]
+        n_below = offsets[level] - below
+        n_next = 0
+        for k in range(n_queue):
+            c = queue[k]
+            z = (positions[c, 0] * view[2, 0] + positions[c, 1] * view[2, 1]
+                 + positions[c, 2] * view[2, 2] + view[2, 3])
+            stop = False
+            if z > near:
+                coc = coc_k * abs(1.0 / z - inv_focus)
+                size = fx * extent[c] / z
+                stop = size * size <= limit * coc * coc
+            if stop:
+                rows[n] = c
+                n += 1
+            else:
+                local = c - offsets[level]
+                for child in (2 * local, 2 * local + 1):
+                    if child < n_below:
+                        nxt[n_next] = below + child
+                        n_next += 1
+        queue, nxt = nxt, queue
+        n_queue = n_next
+    for k in range(n_queue):
+        rows[n] = queue[k]
+        n += 1
+    return n
 
 
 def cut_arrays(tree: GaussianTree, rows: np.ndarray) -> GaussianArrays:
-    """The drawn rows as arrays for the Gaussian stages."""
-    level = (np.searchsorted(tree.offsets, rows, side="right") - 1).astype(np.int8)
-    return GaussianArrays(positions=tree.positions[rows], scales=tree.scales[rows],
-                          rotations=tree.rotations[rows], opacity=tree.opacity[rows],
-                          sh=tree.sh[rows], level=level)
+    """The drawn rows as arrays for the Gaussian stages (``gather_rows``)."""
+    rows = np.ascontiguousarray(rows, np.int64)
+    n, k = len(rows), tree.sh.shape[1]
+    out = GaussianArrays(positions=np.empty((n, 3), np.float32),
+                         scales=np.empty((n, 3), np.float32),
+                         rotations=np.empty((n, 4), np.float32),
+                         opacity=np.empty(n, np.float32), sh=np.empty((n, k, 3), np.float32),
+                         level=np.empty(n, np.int8))
+    gather_rows(tree.positions, tree.scales, tree.rotations, tree.opacity, tree.sh,
+                tree.offsets, rows, out.positions, out.scales, out.rotations, out.opacity,
+                out.sh, out.level)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def gather_rows(positions, scales, rotations, opacity, sh, offsets, rows, out_positions,
+                out_scales, out_rotations, out_opacity, out_sh, out_level):
+    """out_*[i] = the tree's row rows[i], out_level[i] its level: numpy's fancy indexing of
+    five arrays in one parallel pass (a fifth of its time on a cut of 49k rows)."""
+    for i in numba.prange(rows.shape[0]):
+        r = rows[i]
+        for c in range(3):
+            out_positions[i, c] = positions[r, c]
+            out_scales[i, c] = scales[r, c]
+        for c in range(4):
+            out_rotations[i, c] = rotations[r, c]
+        out_opacity[i] = opacity[r]
+        for j in range(sh.shape[1]):
+            for c in range(3):
+                out_sh[i, j, c] = sh[r, j, c]
+        level = 0
+        while r >= offsets[level + 1]:
+            level += 1
+        out_level[i] = level

@@ -135,3 +135,30 @@ def composite(footprints, width, height):
                 t *= 1 - alpha
             colour[py, px], trans[py, px] = c, t
     return colour, trans
+
+
+def select_cut(tree, view, fx, near, coc_k, inv_focus, blur_variance, fraction) -> np.ndarray:
+    """``gauss.lod.select_cut``, level by level with whole-array numpy: a level's candidates
+    (ascending) that stop (in front of the near plane, size^2 <= fraction blur_variance
+    C_r^2, size = fx extent / z) are drawn, the others' children are the next level's;
+    level 0's candidates are all drawn. The rows, each level's in index order, top first."""
+    top = tree.n_levels - 1
+    candidates = np.arange(tree.offsets[top], tree.offsets[top + 1])
+    drawn = []
+    for level in range(top, -1, -1):
+        if level == 0:
+            drawn.append(candidates)
+            break
+        p = tree.positions[candidates].astype(np.float64)
+        z = p @ view[2, :3] + view[2, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            coc = coc_k * np.abs(1.0 / z - inv_focus)
+            size = fx * tree.extent[candidates] / z
+        stop = (z > near) & (size * size <= fraction * blur_variance * coc * coc)
+        drawn.append(candidates[stop])
+        local = candidates[~stop] - tree.offsets[level]
+        below = tree.offsets[level - 1]
+        n_below = tree.offsets[level] - below
+        children = np.concatenate([2 * local, 2 * local + 1])
+        candidates = np.sort(below + children[children < n_below])
+    return np.concatenate(drawn)
