@@ -2,6 +2,7 @@
 
     python bench/gaussians.py [--size 640x480] [--samples 256] [--scenes donut fruit ...]
         [--out bench/gaussians.json]
+    python bench/gaussians.py --visibility --size 960x720 --samples 64   # its resolution
 
 For each shared 3DGS scene, seen by the default camera of ``dofsplat render`` (the scene's
 ``view_bounds`` framed from +z, up = the scene's ``up_hint``):
@@ -218,16 +219,14 @@ def convergence() -> None:
     print(f"  pinhole frames from the 64 parts' centroids: {psnr(mean, ref.image):.2f} dB")
 
 
-def lod(names, size, samples) -> None:
-    """The Gaussian LOD cut (``gaussian_lod``) against no LOD, each against the reference,
-    at stops (``lod_blur_fraction``) 0.35, 0.1 and 0.03, at 10 and 35 px; times of the
-    second of two runs."""
+def lenses(names, size, samples, settings, scaled=False):
+    """(name, scene, camera, C_r px, lens, the lens reference) for each scene at the 10 and
+    35 px lenses (``lens_for``); scaled: the lenses of a 320 px wide frame, whose C_r at
+    --size is that x width / 320."""
     import dofsplat as ds
     from dofsplat.io import load
-    from dofsplat.metrics import psnr
     from dofsplat.reference import render_reference
 
-    settings = ds.RenderSettings()
     for name in names:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -235,19 +234,61 @@ def lod(names, size, samples) -> None:
         camera = default_camera(scene, *size)
         pinhole = ds.render(scene, camera, None, settings)
         for coc in (10.0, 35.0):
-            lens = lens_for(scene, camera, coc, pinhole.depth)
+            coc_px = coc * size[0] / 320 if scaled else coc
+            lens = lens_for(scene, camera, coc_px, pinhole.depth)
             ref = render_reference(scene, camera, lens, settings, samples=samples, progress=False)
-            cells = []
-            for label, fraction in (("no LOD", None), ("0.35", 0.35), ("0.1", 0.1), ("0.03", 0.03)):
-                st = dataclasses.replace(settings, gaussian_lod=False) if fraction is None else \
-                    dataclasses.replace(settings, gaussian_lod=True, lod_blur_fraction=fraction)
+            yield name, scene, camera, coc_px, lens, ref
+
+
+def lod(names, size, samples) -> None:
+    """The Gaussian LOD cut (``gaussian_lod``) against no LOD, each against the reference,
+    at stops (``lod_blur_fraction``) 0.35, 0.1 and 0.03, at 10 and 35 px; times of the
+    second of two runs."""
+    import dofsplat as ds
+    from dofsplat.metrics import psnr
+
+    settings = ds.RenderSettings()
+    for name, scene, camera, coc, lens, ref in lenses(names, size, samples, settings):
+        cells = []
+        for label, fraction in (("no LOD", None), ("0.35", 0.35), ("0.1", 0.1), ("0.03", 0.03)):
+            st = dataclasses.replace(settings, gaussian_lod=False) if fraction is None else \
+                dataclasses.replace(settings, gaussian_lod=True, lod_blur_fraction=fraction)
+            for _ in range(2):
+                t = time.perf_counter()
+                frame = ds.render(scene, camera, lens, st)
+                seconds = time.perf_counter() - t
+            cells.append(f"{label}: {psnr(frame.image, ref.image):.2f} dB {seconds:.2f} s "
+                         f"{frame.stats['splats_rendered']:,} splats")
+        print(f"  {name} {coc:.0f} px: " + " | ".join(cells), flush=True)
+
+
+def visibility(names, size, samples) -> None:
+    """The lens visibility's resolution (``cpu_gauss.LayerSettings.visibility_scale``, and the
+    blur's rule ``visibility_scale_for``): the default frame with its visibility at 1/4,
+    1/8 and 1/16 the resolution and by the rule, each against the reference, with the
+    bench's 10 and 35 px lenses (the lens of a 320 px wide frame: at --size its C_r is
+    that x width / 320); times of the second of two runs."""
+    import dofsplat as ds
+    from dofsplat.backends import cpu_gauss
+    from dofsplat.metrics import psnr
+
+    settings = ds.RenderSettings()
+    saved = cpu_gauss.LAYERS
+    for name, scene, camera, coc, lens, ref in lenses(names, size, samples, settings, True):
+        rule = cpu_gauss.visibility_scale_for(scene.positions, camera, lens, settings)
+        cells = []
+        for label, scale in (("1/4", 4), ("1/8", 8), ("1/16", 16), (f"rule 1/{rule}", None)):
+            cpu_gauss.LAYERS = saved if scale is None else dataclasses.replace(
+                saved, visibility_scale=scale, visibility_max_scale=scale)
+            try:
                 for _ in range(2):
                     t = time.perf_counter()
-                    frame = ds.render(scene, camera, lens, st)
+                    frame = ds.render(scene, camera, lens, settings)
                     seconds = time.perf_counter() - t
-                cells.append(f"{label}: {psnr(frame.image, ref.image):.2f} dB {seconds:.2f} s "
-                             f"{frame.stats['splats_rendered']:,} splats")
-            print(f"  {name} {coc:.0f} px: " + " | ".join(cells), flush=True)
+            finally:
+                cpu_gauss.LAYERS = saved
+            cells.append(f"{label}: {psnr(frame.image, ref.image):.2f} dB {seconds:.2f} s")
+        print(f"  {name} {coc:.0f} px: " + " | ".join(cells), flush=True)
 
 
 def main(argv=None) -> int:
@@ -262,7 +303,14 @@ def main(argv=None) -> int:
                         help="only the lens in 1-64 parts against the reference (a random scene)")
     parser.add_argument("--lod", action="store_true",
                         help="only the Gaussian LOD cut against no LOD (--scenes, --size, --samples)")
+    parser.add_argument("--visibility", action="store_true",
+                        help="only the lens visibility at 1/4, 1/8, 1/16 the resolution and by "
+                             "the blur's rule (--scenes, --size, --samples)")
     args = parser.parse_args(argv)
+    if args.visibility:
+        visibility(args.scenes, tuple(int(v) for v in args.size.lower().split("x")),
+                   args.samples)
+        return 0
     if args.convergence:
         convergence()
         return 0

@@ -360,6 +360,34 @@ def test_layers_never_read_an_unwritten_tile():
     np.testing.assert_array_equal(frames[0][1], frames[1][1])
 
 
+@pytest.mark.parametrize("width, c_r, expected", [
+    (1920, 200.0, 16),  # 0.1 x 200 = 20: 1/16, 120 px wide
+    (1920, 100.0, 8),  # 10: 1/8
+    (1920, 60.0, 4),  # 6: 1/4, the finest
+    (1920, 800.0, 16),  # 80: at most 1/16
+    (960, 200.0, 8),  # 1/16 would leave 60 px: 1/8, 120 px
+    (640, 200.0, 4),  # 1/8 would leave 80 px
+])
+def test_lens_visibility_is_coarser_where_the_blur_is_wide(width, c_r, expected):
+    """``visibility_scale_for``: the largest power of 2 within a tenth of the median
+    whole-lens C_r of the scene's Gaussians, from 1/4 to 1/16, and coarser than 1/4 only
+    while the visibility image keeps 120 px along its longer side. Gaussians at one depth,
+    so that every one's C_r is the lens's at that depth."""
+    from dofsplat.backends.cpu_gauss import visibility_scale_for
+
+    cam = ds.Camera(eye=(0, 0, 10), target=(0, 0, 0), width=width, height=width * 9 // 16,
+                    fov_y=40.0, near=0.01)
+    rng = np.random.default_rng(0)
+    g = Gaussians(positions=np.c_[rng.uniform(-1, 1, (500, 2)), np.zeros(500)],
+                  scales=np.full((500, 3), 0.01), rotations=[[1, 0, 0, 0]] * 500,
+                  opacity=np.full(500, 0.5), sh=np.zeros((500, 1, 3)))
+    focus = 5.0  # C_r(10) = K |1/10 - 1/5| = K / 10, K = aperture / 2 x pixels per unit
+    aperture = 2 * 10 * c_r / cam.pixels_per_unit_at_unit_depth
+    lens = ds.ThinLens(focus_distance=focus, aperture=aperture)
+    assert lens.coc_radius_px(10.0, cam) == pytest.approx(c_r)
+    assert visibility_scale_for(g.positions, cam, lens, ds.RenderSettings()) == expected
+
+
 def test_a_hidden_gaussian_does_not_bleed_through_a_blurred_sheet():
     """Focused far behind the sheet, the sheet is blurred by about 10 px; the red Gaussian
     hidden behind its middle must not show through it (the truth: the 64-sample reference
@@ -443,8 +471,10 @@ def test_merge_matches_moments_and_keeps_alpha_energy():
 def test_lod_cut_is_the_scene_in_focus_and_coarser_with_blur():
     """In focus (no lens) the frame is the scene's, bit for bit, LOD or not; with blur the
     cut draws fewer Gaussians the larger the blur, every Gaussian covered once (the cut's
-    rows stand for disjoint sets of leaves that together are all of them)."""
-    from dofsplat.gauss.lod import select_cut, tree_for
+    rows stand for disjoint sets of leaves that together are all of them), and the jitted
+    walk draws its numpy twin's rows in its order; the gathered arrays are the tree's rows."""
+    from dofsplat.gauss import slow
+    from dofsplat.gauss.lod import cut_arrays, select_cut, tree_for
 
     g = scene(n=400, seed=7, degree=1)
     cam = camera(64, 48)
@@ -459,6 +489,13 @@ def test_lod_cut_is_the_scene_in_focus_and_coarser_with_blur():
         rows = select_cut(tree, view_matrix(cam), intrinsics(cam)[0], cam.near, coc_k, inv_focus,
                           0.25, 1.0)
         counts.append(len(rows))
+        np.testing.assert_array_equal(rows, slow.select_cut(
+            tree, view_matrix(cam), intrinsics(cam)[0], cam.near, coc_k, inv_focus, 0.25, 1.0))
+        arrays = cut_arrays(tree, rows[::-1])
+        np.testing.assert_array_equal(arrays.sh, tree.sh[rows[::-1]])
+        np.testing.assert_array_equal(arrays.rotations, tree.rotations[rows[::-1]])
+        np.testing.assert_array_equal(arrays.level, np.searchsorted(
+            tree.offsets, rows[::-1], side="right") - 1)
         # node j of level l stands for the leaves [j 2^l, (j + 1) 2^l) (Morton order)
         covered = np.zeros(len(g), int)
         level = np.searchsorted(tree.offsets, rows, side="right") - 1

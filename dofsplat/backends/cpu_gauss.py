@@ -57,7 +57,10 @@ class LayerSettings:
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
     sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
-    visibility_scale: int = 4  # lens visibility: at 1/this the resolution (8 lost 1-4 dB)
+    visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
+    visibility_coc_fraction: float = 0.1  # ... and coarser where the blur allows: a visibility pixel up to this x the median C_r of the frame's Gaussians (``visibility_scale_for``; 0.2 lost 0.2-0.4 dB on playbot)
+    visibility_max_scale: int = 16  # ... at most 1/this the resolution ...
+    visibility_min_size: int = 120  # ... and never coarser than 1/visibility_scale where that leaves the visibility image fewer pixels than this along its longer side
     visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
 
 
@@ -79,6 +82,7 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     stats = {}
     t = time.perf_counter()
     if layered:
+        vis_scale = visibility_scale_for(scene.positions, camera, lens, settings)
         scene, layers = in_layers(scene, camera, lens, parts, settings, lod)
     elif lod:
         scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
@@ -86,7 +90,8 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     t = time.perf_counter()
     share = None
     if layered:
-        share = lens_visibility_by_shifts(scene, camera, lens, settings)
+        share = lens_visibility_by_shifts(scene, camera, lens, settings, scale=vis_scale)
+        stats["visibility_scale"] = vis_scale
     elif blur == "ours" and blurred:
         share = lens_visibility(scene, camera, lens, settings)
     stats["visibility_ms"] = _ms(t)
@@ -414,7 +419,8 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     views' tiles are composited in one loop. Against ``lens_visibility`` from the same views
     the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px)."""
     views = LAYERS.visibility_views if views is None else views
-    scale = LAYERS.visibility_scale if scale is None else scale
+    if scale is None:
+        scale = visibility_scale_for(scene.positions, camera, lens, settings)
     small, margin, shifts, inv_focus, near, view = shifted_views(scene.positions, camera, lens,
                                                                  settings, views, scale)
     w, h = small.width, small.height
@@ -447,6 +453,45 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     best = np.empty(n, np.float32)
     best_view_shares(view_rows, view_visible, seen, n, best)
     return best
+
+
+def visibility_scale_for(positions: np.ndarray, camera: Camera, lens,
+                         settings: RenderSettings) -> int:
+    """The lens visibility's scale for a frame (``lens_visibility_by_shifts``): the largest
+    power of 2 within ``LAYERS.visibility_coc_fraction`` x the median whole-lens C_r (px) of
+    the Gaussians in front of the camera (positions (N, 3)), at least
+    ``LAYERS.visibility_scale`` and at most ``visibility_max_scale``, and coarser than
+    ``visibility_scale`` only while the image keeps ``visibility_min_size`` pixels along its
+    longer side (a small frame keeps 1/4: without this floor, tests/test_gaussians.py's LOD
+    frame at 96 x 72 and a 46 px blur, its visibility at 1/16 while the full frame's was at
+    1/8, fell from 41.0 to 31.9 dB against it). The visibility is of
+    blurred Gaussians, so its pixel may grow with the blur: a frame drawn at a higher
+    resolution with the same lens gets the same visibility image, where a fixed 1/4 cost
+    its composite 16 x the work at 4 x the width. At 1920 x 1080 (``python
+    bench/gaussians.py --visibility --size 1920x1080 --samples 32``, 2026-11-28): with the
+    bench's 35 px lens (C_r 210 px at that width) the rule's 1/8 (the guitar, the biker,
+    playbot) and 1/16 (the donut) scored within -0.05..+0.04 dB of 1/4, where 1/16 lost
+    0.44 dB on playbot; with its 10 px lens (60 px) 1/16 lost up to 2.2
+    dB, and the rule keeps 1/4 there. At 960 x 720 the same lenses' 1/8 lost up to 1.0
+    and 0.23 dB (``--size 960x720``): the rule keeps 1/4 but for the donut. The frame's scene, not its LOD cut, whose rows crowd where
+    the blur is small (about 100,000 of a large scene's Gaussians, evenly taken, for the
+    median)."""
+    view = view_matrix(camera)
+    step = max(1, len(positions) // 100_000)
+    z = np.asarray(positions[::step], np.float64) @ view[2, :3] + view[2, 3]
+    near = camera.near if camera.frustum is None else camera.frustum[4]
+    z = z[z > near]
+    if not len(z):
+        return LAYERS.visibility_scale
+    coc_k, inv_focus = coc_coefficients(camera, lens, settings)
+    median = coc_k * float(np.median(np.abs(1.0 / z - inv_focus)))
+    scale = LAYERS.visibility_scale
+    longer = max(camera.width, camera.height)
+    while (2 * scale <= min(LAYERS.visibility_coc_fraction * median,
+                            LAYERS.visibility_max_scale)
+           and longer // (2 * scale) >= LAYERS.visibility_min_size):
+        scale *= 2
+    return scale
 
 
 def shifted_views(positions: np.ndarray, camera: Camera, lens, settings: RenderSettings,

@@ -532,13 +532,15 @@ def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, s
 
 
 def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, lens,
-                                   settings) -> object:
+                                   settings, scale: int | None = None) -> object:
     """(N,) float32 on the GPU: ``cpu_gauss.lens_visibility_by_shifts`` (positions: the
     frame's Gaussians' (N, 3), on the host), from the same views: one projection moved to
     each view, every view's tiles composited in one launch, seen sums by atomics."""
     layers = cpu_gauss.LAYERS
     small, margin, shifts, inv_focus, near, view = shifted_views(
-        positions, camera, lens, settings, layers.visibility_views, layers.visibility_scale)
+        positions, camera, lens, settings, layers.visibility_views,
+        cpu_gauss.visibility_scale_for(positions, camera, lens, settings) if scale is None
+        else scale)
     w, h = small.width, small.height
     n, m = len(positions), len(shifts)
     fx, fy, cx, cy = intrinsics(small)
@@ -634,6 +636,7 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     lod = settings.lod and settings.gaussian_lod and blurred
     layered = cpu_gauss.LAYERS.enabled and parts is not None and blur == "ours"
     if layered:
+        vis_scale = cpu_gauss.visibility_scale_for(scene.positions, camera, lens, settings)
         scene, layers = in_layers(scene, camera, lens, parts, settings, lod)
     elif lod:
         scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
@@ -641,7 +644,8 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     clock.mark("select_ms")
     share = None
     if layered:
-        share = lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens, settings)
+        share = lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens, settings,
+                                               vis_scale)
     elif blur == "ours" and blurred:
         share = lens_visibility_cuda(arrays, camera, lens, settings)
     clock.mark("visibility_ms")
