@@ -117,7 +117,8 @@ class Surfels:
         # rescale only rows that are not unit already: re-normalising a unit float32 vector
         # can move it by an ulp, and a file's normals should survive a round trip exactly
         off = np.abs(lengths - 1.0) > 1e-6
-        self.normals[off] /= lengths[off, None]
+        if off.any():
+            self._writable("normals")[off] /= lengths[off, None]
         bad = int(np.count_nonzero(self.radius <= 0))
         if self.radius_v is not None:
             bad = max(bad, int(np.count_nonzero(self.radius_v <= 0)))
@@ -134,11 +135,24 @@ class Surfels:
                                     "parallel to their normal")
             # as for normals: leave tangents that are unit and in the plane already untouched
             off = (np.abs(np.linalg.norm(t64, axis=1) - 1.0) > 1e-6) | (np.abs(tl - 1.0) > 1e-6)
-            self.tangent[off] = (t[off] / tl[off, None]).astype(np.float32)
-        np.clip(self.colors, 0.0, None, out=self.colors)
-        np.clip(self.opacity, 0.0, 1.0, out=self.opacity)
+            if off.any():
+                self._writable("tangent")[off] = (t[off] / tl[off, None]).astype(np.float32)
+        if np.any(self.colors < 0.0):
+            np.clip(self.colors, 0.0, None, out=self._writable("colors"))
+        if np.any((self.opacity < 0.0) | (self.opacity > 1.0)):
+            np.clip(self.opacity, 0.0, 1.0, out=self._writable("opacity"))
         if self.weight is not None and np.any(self.weight < 0):
             raise DofsplatError("surfel normalisation weights must be >= 0")
+
+    def _writable(self, name: str) -> np.ndarray:
+        """The array ``name``, copied first where it cannot be written (a prepared model's
+        read-only memory map): ``_validate`` mends rows in place, and only where some row
+        needs it, so that a valid file's maps are neither written nor copied."""
+        a = getattr(self, name)
+        if not a.flags.writeable:
+            a = np.array(a)
+            setattr(self, name, a)
+        return a
 
     @classmethod
     def from_arrays(cls, positions, normals, radius, colors, opacity=None, *,
