@@ -3,12 +3,14 @@
     git worktree add -f ../old 12450ad --detach
     python bench/paired_frames.py old=../old new=.                # plane, lion, demo
     python bench/paired_frames.py old=../old new=. --runs 3 --repeat 9 --images
+    python bench/paired_frames.py old=../old new=. --scenes g-guitar g-biker-hd   # 3DGS captures
     git worktree remove --force ../old
 
 Each LABEL=PATH is a checkout of the package. A run starts one process per checkout, in
 turn (each with its own numba cache under the system's temporary folder), and each process
-renders every scene of ``bench/profile.py`` (this checkout's) pinhole and at its largest
-aperture with the default settings: a warm-up frame, then the median of ``--repeat`` frames,
+renders every scene of ``bench/profile.py`` (this checkout's; "g-NAME" and "g-NAME-hd" are
+``bench/gaussians.py``'s 3DGS captures at 320 x 240 and 1920 x 1080 with a 35 px lens)
+pinhole and at its largest aperture with the default settings: a warm-up frame, then the median of ``--repeat`` frames,
 timed whole. After ``--runs`` rounds the table gives the median of the runs' medians per
 checkout, and each one's ratio to the first. ``--images`` also compares every frame's image
 and depth map with the first checkout's, bit for bit, and gives those that differ their
@@ -62,7 +64,9 @@ def frames(root: str, scenes: list[str], repeat: int, out: str) -> None:
     times, images = {}, {}
     for name in scenes:
         surfels, camera, lens = scene(name)
-        for aperture in sorted({APERTURES[name][0], APERTURES[name][-1]}):
+        # (a Gaussian scene, "g-NAME": pinhole and its own 35 px lens, profile.gaussian_scene)
+        apertures = APERTURES.get(name, (0.0, lens.aperture))
+        for aperture in sorted({apertures[0], apertures[-1]}):
             thin = dataclasses.replace(lens, aperture=aperture) if aperture > 0 else None
             ds.render(surfels, camera, thin)
             ms, result = [], None

@@ -53,8 +53,31 @@ APERTURES = {"plane": (0.0, 0.1, 0.4), "lion": (0.0, 0.5, 2.0), "demo": (0.0, 0.
 BIG_SIDE = 3163  # surfels per side of the big plane: 10,004,569
 
 
+def gaussian_scene(name: str):
+    """(scene, camera, lens) of a shared 3DGS capture as ``bench/gaussians.py`` sees it:
+    "g-NAME" at 320 x 240, "g-NAME-hd" at 1920 x 1080, the lens whose largest CoC over the
+    frame's depths is 35 px at that size (``bench/paired_frames.py``'s Gaussian frames)."""
+    import warnings
+
+    import dofsplat as ds
+    import gaussians
+    from dofsplat.io import load
+
+    key = name[2:].removesuffix("-hd")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = load(gaussians.SCENES[key])
+    size = (1920, 1080) if name.endswith("-hd") else (320, 240)
+    camera = gaussians.default_camera(model, *size)
+    pinhole = ds.render(model, camera, None)
+    return model, camera, gaussians.lens_for(model, camera, 35.0, pinhole.depth)
+
+
 def scene(name: str):
     from dofsplat.demo import PLANE_SIZE, demo_scene, plane_scene, textured_plane
+
+    if name.startswith("g-"):
+        return gaussian_scene(name)
 
     if name == "plane":
         return plane_scene(512, 512)

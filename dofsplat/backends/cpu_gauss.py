@@ -9,9 +9,9 @@ in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default, an
 ``lens_samples``; ``frame.lens_parts``) the frame is K passes, each seen from its part's
 centroid with the residual blur, averaged; each pass is drawn in layers (``LAYERS``,
 ``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution its blur
-allows, every image of the frame composited in one loop: at a 35 px blur 1.6-2.7 x the
+allows, every image of the frame composited in one loop: at a 35 px blur 1.3-2.6 x the
 pinhole frame on the four large shared scenes at 320 x 240, where the parts drawn whole
-cost 4.2-12.3 x (``python bench/gaussians.py --size 320x240``, 2026-11-28, the 2-core AMD
+cost 4.9-13.4 x (``python bench/gaussians.py --size 320x240``, 2026-11-28, the 2-core AMD
 EPYC, shared), within -0.6 / +0.9 dB of them against the lens reference.
 """
 
