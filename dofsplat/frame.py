@@ -46,6 +46,7 @@ class RenderSettings:
     lod_pixel_threshold: float = 1.0  # LOD: a node whose disk projects under this radius (px) is drawn whole
     lod_blur_fraction: float = 0.35  # LOD: draw a node when its filter is at most this x the DOF blur (variance); the paper's rule is 1 (docs/maths.md, "The stop's margin")
     lod_color_tolerance: float = 0.02  # LOD: a node with more texture at its own scale than this (RMS, linear RGB: Hierarchy.color_detail) is cut finer, down to 0.3 x the blur fraction; inf: off (docs/maths.md, "A finer cut where the texture needs it")
+    lod_backface_drop: bool = True  # LOD with cull_backfaces: a node whose mean normal faces away and that the blur's stop would draw is dropped whole, where the walk otherwise descends to its front-facing minority (issue 50: on a scan with mixed normals most of a blurred cut was single back-facing surfels; docs/maths.md, "A back-facing node under the blur")
     lod_min_node: int = 4  # LOD: the blur's stop draws a node of at least this many surfels; a smaller one is drawn as its surfels (4, the default: not the nodes of 2-3 surfels, which carry most of LOD's loss where surfaces cross; docs/maths.md, "The smallest nodes"); 2: any node, as the paper
     show_lod: bool = False  # colour each splat by its LOD level, drawn without the DOF blur (Figure 5)
     device: str = "cpu"  # "cpu", "cuda" (an NVIDIA GPU: dofsplat[cuda]) or "auto" (the GPU if one works)
@@ -244,6 +245,16 @@ def lens_parts(camera: Camera, lens, settings: RenderSettings) -> LensParts | No
     cameras = tuple(lens_camera(camera, 0.5 * diameter * u, float(lens.focus_distance))
                     for u in offsets)
     return LensParts(offsets, cameras, rho, ResidualLens(lens, rho))
+
+
+def backface_rule(settings: RenderSettings) -> int:
+    """The LOD walk's back-face rule (``lod.select``'s ``cull_backfaces``): 0 two-sided, 1
+    cull, 2 cull and drop a blurred back-facing node (``lod_backface_drop``)."""
+    from .lod.select import BACK_DESCEND, BACK_DROP_BLURRED
+
+    if not settings.cull_backfaces:
+        return 0
+    return BACK_DROP_BLURRED if settings.lod_backface_drop else BACK_DESCEND
 
 
 def lod_kappa(settings: RenderSettings, parts: LensParts | None = None) -> float:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..camera import Camera, ThinLens
 from ..frame import (RenderResult, RenderSettings, aperture_shape, aperture_variance,
-                     coc_coefficients,
+                     backface_rule, coc_coefficients,
                      front_pass, kernel_floor, lens_parts, lod_kappa, lod_level_colors,
                      lod_tree, merge_parameters, splat_rows_budget)
 from ..surfels import Surfels
@@ -333,7 +333,7 @@ def select_cut(surfels: Surfels, camera: Camera, lens, settings: RenderSettings,
     tree = lod_tree(surfels, hierarchy)
     coc_k, inv_focus = coc_coefficients(camera, lens, settings)
     return cut(tree, surfels, camera, coc_k, inv_focus, settings.cutoff,
-               settings.lod_pixel_threshold, settings.cull_backfaces, lod_kappa(settings, parts),
+               settings.lod_pixel_threshold, backface_rule(settings), lod_kappa(settings, parts),
                settings.lod_color_tolerance, settings.lod_min_node)
 
 

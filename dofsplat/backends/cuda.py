@@ -689,7 +689,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
                 parts=None) -> SplatSource:
     """This frame's splats on the GPU: every surfel, or the LOD cut (backends.cpu.select's
     twin; parts: the lens's parts, whose residual blur chooses the cut)."""
-    from ..frame import LOD_PALETTE, coc_coefficients, lod_kappa
+    from ..frame import LOD_PALETTE, backface_rule, coc_coefficients, lod_kappa
 
     if not settings.lod:
         return scene.source
@@ -721,7 +721,7 @@ def select_cuda(surfels, scene: DeviceScene, tree, camera, lens, settings,
             ay, by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
             float(settings.cutoff), thr2,
             float(lod_kappa(settings, parts)), float(settings.lod_color_tolerance),
-            int(settings.lod_min_node), bool(settings.cull_backfaces))
+            int(settings.lod_min_node), backface_rule(settings))
 
     # the flagged nodes in node (preorder) order, as the CPU's np.flatnonzero gives them
     position = _WS.get("lod.position", (n_nodes + 1,), np.int64)

@@ -34,7 +34,7 @@ def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
 
 
 def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
-                  cutoff: float, pixel_threshold: float, cull_backfaces: bool,
+                  cutoff: float, pixel_threshold: float, cull_backfaces: int,
                   blur_fraction: float = 1.0, color_tolerance: float = float("inf"),
                   min_node: int = 2):
     """The nodes of this frame's cut as a ``SplatSource``, in node (preorder) order."""
@@ -44,7 +44,7 @@ def select_splats(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: flo
 
 
 def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
-               cutoff: float, pixel_threshold: float, cull_backfaces: bool,
+               cutoff: float, pixel_threshold: float, cull_backfaces: int,
                blur_fraction: float = 1.0, color_tolerance: float = float("inf"),
                min_node: int = 2, walk_to_leaves: bool = True):
     """This frame's cut: (nodes (S,) in preorder, their first leaves, their counts, their
@@ -74,7 +74,7 @@ def select_cut(tree: Hierarchy, surfels, camera, coc_k: float, inv_focus: float,
                  by, near, camera.width, camera.height, float(coc_k), float(inv_focus),
                  float(cutoff),
                  float(pixel_threshold) ** 2, float(blur_fraction), float(color_tolerance),
-                 np.int64(min_node), bool(cull_backfaces), flags)
+                 np.int64(min_node), int(cull_backfaces), flags)
     return cut_nodes(flags, tree.n_surfels, tree.small, child, np.int64(tree.block_levels))
 
 

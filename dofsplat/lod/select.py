@@ -49,6 +49,10 @@ from ..splat.ewa import (coc_radius_px, dof_variance, jacobian_column, max_eigen
                          screen_lod_variance, shared, shared_inline, tangent_from_normal)
 
 CULL, SELECT, DESCEND = 3, 1, 2  # also the flags of select_nodes (0: not visited)
+# the walk's back-face rule (``cull_backfaces``, ``frame.backface_rule``): 0 none (two-sided
+# splats), 1 cull, descending a node whose mean normal faces away to its children, 2 cull
+# and, in a blurred region, drop such a node where the blur's stop would draw it
+BACK_DESCEND, BACK_DROP_BLURRED = 1, 2
 # ... and LEAVES + m: a node of m < CULL_TEST_MIN_COUNT surfels whose cut is its m leaves,
 # which the pinhole walk does not visit (``_walk``; ``cut_run`` lists them)
 LEAVES = 4
@@ -143,7 +147,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
     pz = view[8] * pwx + view[9] * pwy + view[10] * pwz + view[11]
     if -pz <= near:
         return DESCEND
-    if cull_backfaces and nx * px + ny * py + nz * pz >= 0.0:
+    back = cull_backfaces and nx * px + ny * py + nz * pz >= 0.0
+    if back and cull_backfaces != BACK_DROP_BLURRED:
         return DESCEND  # a back-facing mean: let the children decide
     cov = (np.float64(lod_cov[r, 0]), np.float64(lod_cov[r, 1]), np.float64(lod_cov[r, 2]),
            np.float64(lod_cov[r, 3]), np.float64(lod_cov[r, 4]), np.float64(lod_cov[r, 5]))
@@ -162,7 +167,8 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
         lam_j = max_eigenvalue(j11 * j11 + j12 * j12, j11 * j21 + j12 * j22,
                                j21 * j21 + j22 * j22)
         if 4.0 * (np.float64(sigma_r2[r]) * lam_j + lam_q) <= thr2:
-            return SELECT
+            # sharp: a back-facing node's front-facing children are seen, so they decide
+            return DESCEND if back else SELECT
     # DOF stop: J V^q J^T inside V^I for the smallest CoC over the node's depth range
     if coc_k > 0.0:
         u_lo = max(u - extent[r], near)
@@ -172,7 +178,9 @@ def visit_node(r, m, center, bound, extent, position, normal, cone, sigma_r2, lo
         coc_min = min(coc_radius_px(u_lo, coc_k, inv_focus), coc_radius_px(u_hi, coc_k, inv_focus))
         if m >= min_node and lam_q <= kappa * detail_factor(np.float64(color_detail[r]), m,
                                                             color_tol) * dof_variance(coc_min):
-            return SELECT
+            # blurred: a back-facing node is dropped whole, its front-facing minority with it
+            # (docs/maths.md, "A back-facing node under the blur")
+            return CULL if back else SELECT
     return DESCEND
 
 
