@@ -58,7 +58,7 @@ class LayerSettings:
     sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
-    visibility_coc_fraction: float = 0.1  # ... and coarser where the blur allows: a visibility pixel up to this x the median C_r of the frame's Gaussians (``visibility_scale_for``; 0.2 lost 0.2-0.4 dB on playbot)
+    visibility_coc_fraction: float = 0.1  # ... and coarser where the blur allows: a visibility pixel up to this x the median C_r of the frame's Gaussians (``visibility_scale_for``; 0.2 lost 0.23-0.44 dB on playbot)
     visibility_max_scale: int = 16  # ... at most 1/this the resolution ...
     visibility_min_size: int = 120  # ... and never coarser than 1/visibility_scale where that leaves the visibility image fewer pixels than this along its longer side
     visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
