@@ -8,8 +8,8 @@ the eye ("let the children decide"), so a scan with mixed normals (foliage, nois
 sides of thin walls) was cut down to single surfels there, which the projection then culls;
 in a blurred region it now drops such a node where the blur's stop would draw it.
 This counts it, per frame of the model's default camera (``dofsplat render``'s, focused on
-the surface at the image centre; a CoC of about ``--cocs`` px at the model's far side, as
-``bench/model_file.py`` sets it):
+the surface at the image centre; a CoC of about ``--cocs`` px at the model's far side:
+``bench/model_file.py``'s ``frame_view``):
 
 * the cut's nodes, how many are single surfels, and how many of those face away from the
   eye (drawn as nothing), with back faces culled (``cull_backfaces``, the default), the walk
@@ -35,27 +35,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-
-def frame_view(model, path, width, height, coc):
-    """(camera, lens) of ``dofsplat render``'s default view of the model at this size, the
-    lens (None for coc 0) focused on the surface at the image centre with a CoC of coc px
-    at the model's far side (``bench/model_file.py``)."""
-    from dofsplat import ThinLens
-    from dofsplat.cli import build_parser
-    from dofsplat.cli.render import model_view
-
-    args = build_parser().parse_args(["render", str(path), "--size", f"{width}x{height}"])
-    args.input = str(path)
-    camera, focus, _ = model_view(args, model)
-    if coc <= 0:
-        return camera, None
-    lo, hi = model.view_bounds()
-    far = (float(np.linalg.norm(np.asarray(camera.eye) - 0.5 * (lo + hi)))
-           + 0.5 * float(np.linalg.norm(hi - lo)))
-    k_per_aperture = ThinLens(focus_distance=focus, aperture=1.0).coc_coefficients(camera)[0]
-    return camera, ThinLens(focus_distance=focus,
-                            aperture=coc / (k_per_aperture * abs(1 / far - 1 / focus)))
 
 
 def census(model, camera, lens, settings) -> dict:
@@ -86,6 +65,7 @@ def main(argv=None) -> int:
     from dofsplat.io import load
     from dofsplat.metrics import psnr
     from dofsplat.reference import render_reference
+    from model_file import frame_view  # (bench/model_file.py's frames)
 
     width, height = (int(v) for v in args.size.lower().split("x"))
     model = load(args.model)

@@ -50,9 +50,7 @@ def evict(path):
     os.close(fd)
 
 from dofsplat.io import load
-from dofsplat import render, RenderSettings, ThinLens
-from dofsplat.cli.render import model_view
-from dofsplat.cli import build_parser
+from dofsplat import render, RenderSettings
 
 path, width, height, coc, in_memory, out = sys.argv[1:7]
 width, height, coc = int(width), int(height), float(coc)
@@ -74,16 +72,9 @@ if in_memory == "1":  # the same model, every array in memory
     from dofsplat.fingerprint import remember_hash
     remember_hash(model, TREE_FIELDS, fingerprint_salt(), tree.fingerprint)
     model.remember_bounds(model.bounds(), model.view_bounds())
-args = build_parser().parse_args(["render", path, "--size", f"{width}x{height}"])
-args.input = path
-camera, focus, _ = model_view(args, model)
-lens = None
-if coc > 0:
-    # the aperture whose CoC at the model's far side is coc px: C_r = K |1/z - 1/P|
-    lo, hi = model.view_bounds()
-    far = float(np.linalg.norm(np.asarray(camera.eye) - 0.5 * (lo + hi))) + 0.5 * float(np.linalg.norm(hi - lo))
-    k_per_aperture = ThinLens(focus_distance=focus, aperture=1.0).coc_coefficients(camera)[0]
-    lens = ThinLens(focus_distance=focus, aperture=coc / (k_per_aperture * abs(1 / far - 1 / focus)))
+sys.path.insert(0, sys.argv[7])  # bench/
+from model_file import frame_view
+camera, lens = frame_view(model, path, width, height, coc)
 from dataclasses import replace
 small = replace(camera, width=64, height=48)
 render(model, small, lens, RenderSettings())  # compile
@@ -110,6 +101,29 @@ print(json.dumps({"seconds": seconds, "read_mb": read_mb, "peak_rss_kb": resourc
 """
 
 
+def frame_view(model, path, width, height, coc):
+    """(camera, lens) of ``dofsplat render``'s default view of the model at this size, the
+    lens (None for coc 0) focused on the surface at the image centre, its CoC coc px at the
+    model's far side: C_r = K |1/z - 1/P| (this bench's frames, and ``cut_census.py``'s)."""
+    import numpy as np
+
+    from dofsplat import ThinLens
+    from dofsplat.cli import build_parser
+    from dofsplat.cli.render import model_view
+
+    args = build_parser().parse_args(["render", str(path), "--size", f"{width}x{height}"])
+    args.input = str(path)
+    camera, focus, _ = model_view(args, model)
+    if coc <= 0:
+        return camera, None
+    lo, hi = model.view_bounds()
+    far = (float(np.linalg.norm(np.asarray(camera.eye) - 0.5 * (lo + hi)))
+           + 0.5 * float(np.linalg.norm(hi - lo)))
+    k_per_aperture = ThinLens(focus_distance=focus, aperture=1.0).coc_coefficients(camera)[0]
+    return camera, ThinLens(focus_distance=focus,
+                            aperture=coc / (k_per_aperture * abs(1 / far - 1 / focus)))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", type=Path)
@@ -128,7 +142,8 @@ def main(argv=None) -> int:
         for in_memory in ("0", "1"):
             out = f"/tmp/model_file_bench_{in_memory}.npy"
             result = subprocess.run([sys.executable, "-c", CHILD, str(args.model), str(width),
-                                     str(height), str(coc), in_memory, out],
+                                     str(height), str(coc), in_memory, out,
+                                     str(Path(__file__).resolve().parent)],
                                     capture_output=True, text=True)
             if result.returncode:
                 print(result.stderr[-2000:])
