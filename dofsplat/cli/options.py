@@ -387,8 +387,8 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
         "level of detail",
         "Blurred surfaces are drawn from a coarser level of a hierarchy over the surfels, "
         "so the time per frame hardly depends on the aperture (the paper's Section 6.2). "
-        "The picture stays the same (PSNR against --no-lod: 54-65 dB on the plane of the "
-        "paper's Table 1, 46-55 dB on a scanned statue).")
+        "The picture stays the same (PSNR against --no-lod: 64-78 dB on the plane of the "
+        "paper's Table 1, 54-63 dB on its lion scan; python bench/table1.py).")
     lod.add_argument("--lod", action=argparse.BooleanOptionalAction, default=True,
                      help="select splats from the hierarchy (default: on); --no-lod splats "
                           "every surfel")
@@ -401,7 +401,7 @@ def add_view_options(p: argparse.ArgumentParser, command: str) -> None:
                      help="draw a node when its own blur is at most K times the depth-of-"
                           "field blur (variance): 0.35 (default) keeps textures and contacts "
                           "close to the exact picture (0-3.6 dB from --no-lod on the fidelity "
-                          "suite, 0.5-10 dB at 1) for 1.4-3.0x a pinhole frame at a 40-pixel "
+                          "suite, 0.5-10 dB at 1) for 1.3-3.2x a pinhole frame at a 40-pixel "
                           "blur; 1 (with --lod-min-node 2) is the paper's rule, faster and "
                           "softer")
     lod.add_argument("--lod-color-tolerance", metavar="T", type=tolerance,
