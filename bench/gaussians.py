@@ -3,6 +3,7 @@
     python bench/gaussians.py [--size 640x480] [--samples 256] [--scenes donut fruit ...]
         [--out bench/gaussians.json]
     python bench/gaussians.py --visibility --size 960x720 --samples 64   # its resolution
+    python bench/gaussians.py --backgrounds --size 320x240   # black and white backgrounds
 
 For each shared 3DGS scene, seen by the default camera of ``dofsplat render`` (the scene's
 ``view_bounds`` framed from +z, up = the scene's ``up_hint``):
@@ -291,6 +292,31 @@ def visibility(names, size, samples) -> None:
         print(f"  {name} {coc:.0f} px: " + " | ".join(cells), flush=True)
 
 
+def backgrounds(names, size, samples) -> None:
+    """The default frame, no LOD, one pass, the viewers' blur and the pinhole image against the
+    lens reference over a black background (the bench's) and a white one, whole-frame PSNR,
+    and the alpha channel's PSNR (the same on both): a black background hides a frame's
+    excess coverage where that coverage is dark, a white one shows it."""
+    import dofsplat as ds
+    from dofsplat.metrics import psnr
+
+    variants = {"default": {}, "no LOD": {"gaussian_lod": False},
+                "one pass": {"gaussian_lens_samples": 1},
+                "viewers": {"gaussian_blur": "viewers", "gaussian_lens_samples": 1,
+                            "gaussian_lod": False}}
+    for bg in ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)):
+        settings = ds.RenderSettings(background=bg)
+        for name, scene, camera, coc, lens, ref in lenses(names, size, samples, settings):
+            frames = {k: ds.render(scene, camera, lens, dataclasses.replace(settings, **v))
+                      for k, v in variants.items()}
+            frames["pinhole"] = ds.render(scene, camera, None, settings)
+            cells = [f"{k} {psnr(f.image, ref.image):.2f} (alpha "
+                     f"{psnr(f.image[..., 3], ref.image[..., 3], 'linear'):.1f})"
+                     for k, f in frames.items()]
+            print(f"  {name} {coc:.0f} px, background {bg[0]:.0f}: " + " | ".join(cells),
+                  flush=True)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", default="640x480")
@@ -306,7 +332,15 @@ def main(argv=None) -> int:
     parser.add_argument("--visibility", action="store_true",
                         help="only the lens visibility at 1/4, 1/8, 1/16 the resolution and by "
                              "the blur's rule (--scenes, --size, --samples)")
+    parser.add_argument("--backgrounds", action="store_true",
+                        help="only the frames against the reference over a black and a white "
+                             "background, with the alpha channel's PSNR (--scenes, --size, "
+                             "--samples)")
     args = parser.parse_args(argv)
+    if args.backgrounds:
+        backgrounds(args.scenes, tuple(int(v) for v in args.size.lower().split("x")),
+                    args.samples)
+        return 0
     if args.visibility:
         visibility(args.scenes, tuple(int(v) for v in args.size.lower().split("x")),
                    args.samples)
