@@ -1,0 +1,174 @@
+"""Prototypes of a blurred Gaussian frame's coverage (issue 48; docs/maths.md, "Gaussian
+scenes", item 2): slow numpy/numba drafts, not the renderer, scored against the lens
+reference over a black and a white background.
+
+    python bench/gaussians.py --backgrounds             # today's frames over both backgrounds
+    python bench/gauss_coverage.py --scenes guitar donut --coc 35 [--samples 128]
+
+Each prototype draws the lens in the default's 4 parts. Per part, the Gaussians are split by
+their residual circle of confusion into a near and a far blurred slab and an in-focus slab
+(under ``--sharp`` px: composited as the trainers do). Within a blurred slab each blurred
+footprint is *added*, weighted by the Gaussian's seen share in the slab's own sharp
+composite (alpha T summed over its pixels over its footprint's integral: a stack of
+coincident Gaussians adds up to the front one's coverage, where "over" of their blurred
+footprints compounds), the slab's coverage the sum clamped at 1; the slabs are joined
+"over". Variants: the share from the part's centre alone or the largest over it and
+``--part-views`` points of the part's rim; the parts averaged in the trainer's encoded
+values (as the renderer does) or each decoded over the background first (linear light, as
+the reference averages its views). Printed: PSNR over black / white, and the alpha
+channel's. It draws ``(1 + part views) x 4 x 2`` sharp views at full resolution: tens of
+times the default frame's cost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import gaussians as G  # noqa: E402  (bench/gaussians.py: scenes, camera, lens)
+
+import dofsplat as ds  # noqa: E402
+from dofsplat.backends.cpu_gauss import draw_gaussians, project, to_linear_rgba  # noqa: E402
+from dofsplat.camera import effective_diameter, lens_camera  # noqa: E402
+from dofsplat.colors import linear_to_srgb, srgb_to_linear  # noqa: E402
+from dofsplat.frame import lens_parts  # noqa: E402
+from dofsplat.gauss.composite import (TILE, bin_tiles, composite_tiles, depth_order,  # noqa: E402
+                                      gaussian_alpha)
+from dofsplat.gauss.project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_G, F_OPACITY, F_R,  # noqa: E402
+                                    F_X, F_Y, view_matrix)
+from dofsplat.jit import numba  # noqa: E402
+from dofsplat.metrics import psnr  # noqa: E402
+from dofsplat.reference import render_reference  # noqa: E402
+
+
+@numba.njit(cache=False)
+def add_footprints(rows, boxes, visible, weight, color, alpha):
+    """color += w alpha c, alpha += w alpha over each visible row's box (no order, no "over")."""
+    for i in range(rows.shape[0]):
+        if not visible[i] or weight[i] <= 0.0:
+            continue
+        for y in range(boxes[i, 2], boxes[i, 3]):
+            for x in range(boxes[i, 0], boxes[i, 1]):
+                a = gaussian_alpha(rows[i, F_X], rows[i, F_Y], rows[i, F_CA], rows[i, F_CB],
+                                   rows[i, F_CC], rows[i, F_OPACITY], rows[i, F_CUT], x, y)
+                if a > 0.0:
+                    a *= weight[i]
+                    alpha[y, x] += a
+                    color[y, x, 0] += a * rows[i, F_R]
+                    color[y, x, 1] += a * rows[i, F_G]
+                    color[y, x, 2] += a * rows[i, F_B]
+
+
+def seen_shares(scene, camera, settings) -> np.ndarray:
+    """(N,) each Gaussian's seen share in this sharp view, at most 1."""
+    rows, boxes, visible = project(scene, camera, None, settings)
+    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
+    offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
+    h, w = camera.height, camera.width
+    seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
+    composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
+                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
+    det = np.maximum(rows[:, F_CA] * rows[:, F_CC] - rows[:, F_CB] ** 2, 1e-30)
+    energy = rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
+    return np.where(visible, np.minimum(seen.sum(0) / np.maximum(energy, 1e-30), 1.0), 0.0)
+
+
+def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
+                   linear_parts=True) -> np.ndarray:
+    """The prototype's frame, (H, W, 4) linear RGBA over settings.background."""
+    parts = lens_parts(camera, lens, dataclasses.replace(settings, lens_samples=4))
+    view = view_matrix(camera)
+    z = scene.positions.astype(np.float64) @ view[2, :3] + view[2, 3]
+    k, inv_focus = parts.residual.coc_coefficients(camera)
+    r = k * (1.0 / np.maximum(z, 1e-9) - inv_focus)  # signed residual C_r, px (+: near)
+    slab = np.where(np.abs(r) < sharp_px, 0, np.sign(r)).astype(int)
+    diameter = effective_diameter(camera, lens)
+    bg = linear_to_srgb(np.asarray(settings.background, np.float64))
+    h, w = camera.height, camera.width
+    color_sum, trans_sum, linear_sum = np.zeros((h, w, 3)), np.zeros((h, w)), np.zeros((h, w, 3))
+    for k_part, cam in enumerate(parts.cameras):
+        color, trans = np.zeros((h, w, 3)), np.ones((h, w))
+        for key in (1, 0, -1):  # near, in focus, far
+            sub = scene.subset(np.flatnonzero(slab == key))
+            if not len(sub):
+                continue
+            if key == 0:
+                c, t, _, _ = draw_gaussians(sub, cam, None, settings, "ours", None)
+                color += trans[..., None] * c
+                trans *= t
+                continue
+            u0 = np.asarray(parts.offsets[k_part], np.float64)
+            points = [u0] + [u0 + parts.rho * np.array([math.cos(a), math.sin(a)])
+                             for a in np.arange(part_views) * 2.0 * math.pi / max(part_views, 1)]
+            share = np.max([seen_shares(sub, lens_camera(camera, 0.5 * diameter * p,
+                                                         float(lens.focus_distance)), settings)
+                            for p in points], axis=0)
+            rows, boxes, visible = project(sub, cam, parts.residual, settings)
+            c, a = np.zeros((h, w, 3)), np.zeros((h, w))
+            add_footprints(rows, boxes, visible, share, c, a)
+            over = a > 1.0
+            c[over] /= a[over][:, None]
+            a = np.minimum(a, 1.0)
+            color += trans[..., None] * c
+            trans *= 1.0 - a
+        color_sum += color
+        trans_sum += trans
+        linear_sum += srgb_to_linear(np.clip(color + trans[..., None] * bg, 0.0, 1.0))
+    n = len(parts.cameras)
+    if not linear_parts:
+        return to_linear_rgba(color_sum, trans_sum, settings.background, 1.0 / n)
+    return np.concatenate([linear_sum / n, 1.0 - trans_sum[..., None] / n], -1).astype(np.float32)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=["guitar", "biker", "donut", "fruit"],
+                        choices=list(G.SCENES))
+    parser.add_argument("--coc", type=float, nargs="+", default=[35.0])
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--samples", type=int, default=128)
+    parser.add_argument("--sharp", type=float, default=0.5,
+                        help="the in-focus slab: residual C_r under this, px")
+    parser.add_argument("--part-views", type=int, default=4,
+                        help="points of each part's rim besides its centre for the seen share")
+    args = parser.parse_args(argv)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    settings = ds.RenderSettings(gaussian_lod=False)
+    for name in args.scenes:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scene = ds.io.load(G.SCENES[name])
+        camera = G.default_camera(scene, *size)
+        pinhole = ds.render(scene, camera, None, settings)
+        for coc in args.coc:
+            lens = G.lens_for(scene, camera, coc, pinhole.depth)
+            cells = {}
+            for bg in (0.0, 1.0):
+                st = dataclasses.replace(settings, background=(bg,) * 3)
+                ref = render_reference(scene, camera, lens, st, samples=args.samples,
+                                       progress=False).image
+                frames = {
+                    "today (no LOD)": ds.render(scene, camera, lens, st).image,
+                    "centre share, encoded mean": coverage_frame(
+                        scene, camera, lens, st, args.sharp, 0, False),
+                    f"{args.part_views + 1}-view share, linear mean": coverage_frame(
+                        scene, camera, lens, st, args.sharp, args.part_views, True),
+                }
+                for key, image in frames.items():
+                    cells.setdefault(key, []).append(f"{psnr(image, ref):.2f}")
+                    if bg:
+                        cells[key].append(f"alpha {psnr(image[..., 3], ref[..., 3], 'linear'):.1f}")
+            print(f"  {name} {coc:.0f} px: " + " | ".join(
+                f"{k} {' / '.join(v)}" for k, v in cells.items()), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
