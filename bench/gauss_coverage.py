@@ -6,8 +6,10 @@ reference over a black and a white background.
     python bench/gauss_coverage.py --scenes guitar donut --coc 35 [--samples 128]
 
 Each prototype draws the lens in the default's 4 parts. Per part, the Gaussians are split by
-their residual circle of confusion into a near and a far blurred slab and an in-focus slab
-(under ``--sharp`` px: composited as the trainers do). Within a blurred slab each blurred
+their residual circle of confusion into an in-focus slab (composited as the trainers do, each
+footprint blurred by the residual: "over") and blurred slabs: one near and one far (the
+in-focus slab under 0.5 px), or slabs whose residual C_r doubles from ``--sharp`` px on, as the
+renderer's layers do. Within a blurred slab each blurred
 footprint is *added*, weighted by the Gaussian's seen share in the slab's own sharp
 composite (alpha T summed over its pixels over its footprint's integral: a stack of
 coincident Gaussians adds up to the front one's coverage, where "over" of their blurred
@@ -81,26 +83,29 @@ def seen_shares(scene, camera, settings) -> np.ndarray:
 
 
 def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
-                   linear_parts=True) -> np.ndarray:
+                   linear_parts=True, doubling=False) -> np.ndarray:
     """The prototype's frame, (H, W, 4) linear RGBA over settings.background."""
     parts = lens_parts(camera, lens, dataclasses.replace(settings, lens_samples=4))
     view = view_matrix(camera)
     z = scene.positions.astype(np.float64) @ view[2, :3] + view[2, 3]
     k, inv_focus = parts.residual.coc_coefficients(camera)
     r = k * (1.0 / np.maximum(z, 1e-9) - inv_focus)  # signed residual C_r, px (+: near)
-    slab = np.where(np.abs(r) < sharp_px, 0, np.sign(r)).astype(int)
+    a = np.abs(r)
+    if doubling:  # slabs of residual C_r doubling from sharp_px on, as the renderer's layers
+        level = 1 + np.floor(np.log2(np.maximum(a, sharp_px) / sharp_px)).astype(int)
+        slab = np.where(a < sharp_px, 0, np.sign(r).astype(int) * level)
+    else:  # one near and one far slab
+        slab = np.where(a < sharp_px, 0, np.sign(r)).astype(int)
     diameter = effective_diameter(camera, lens)
     bg = linear_to_srgb(np.asarray(settings.background, np.float64))
     h, w = camera.height, camera.width
     color_sum, trans_sum, linear_sum = np.zeros((h, w, 3)), np.zeros((h, w)), np.zeros((h, w, 3))
     for k_part, cam in enumerate(parts.cameras):
         color, trans = np.zeros((h, w, 3)), np.ones((h, w))
-        for key in (1, 0, -1):  # near, in focus, far
+        for key in sorted(set(slab.tolist()), reverse=True):  # near to far
             sub = scene.subset(np.flatnonzero(slab == key))
-            if not len(sub):
-                continue
             if key == 0:
-                c, t, _, _ = draw_gaussians(sub, cam, None, settings, "ours", None)
+                c, t, _, _ = draw_gaussians(sub, cam, parts.residual, settings, "ours", None)
                 color += trans[..., None] * c
                 trans *= t
                 continue
@@ -134,8 +139,9 @@ def main(argv=None) -> int:
     parser.add_argument("--coc", type=float, nargs="+", default=[35.0])
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--samples", type=int, default=128)
-    parser.add_argument("--sharp", type=float, default=0.5,
-                        help="the in-focus slab: residual C_r under this, px")
+    parser.add_argument("--sharp", type=float, default=1.5,
+                        help="the doubling slabs' in-focus slab: residual C_r under this, px "
+                             "(composited as the trainers do, its footprints blurred)")
     parser.add_argument("--part-views", type=int, default=4,
                         help="points of each part's rim besides its centre for the seen share")
     args = parser.parse_args(argv)
@@ -156,10 +162,13 @@ def main(argv=None) -> int:
                                        progress=False).image
                 frames = {
                     "today (no LOD)": ds.render(scene, camera, lens, st).image,
-                    "centre share, encoded mean": coverage_frame(
-                        scene, camera, lens, st, args.sharp, 0, False),
-                    f"{args.part_views + 1}-view share, linear mean": coverage_frame(
-                        scene, camera, lens, st, args.sharp, args.part_views, True),
+                    "2 slabs, centre share, encoded mean": coverage_frame(
+                        scene, camera, lens, st, 0.5, 0, False),
+                    f"2 slabs, {args.part_views + 1}-view share, linear mean": coverage_frame(
+                        scene, camera, lens, st, 0.5, args.part_views, True),
+                    f"doubling slabs from {args.sharp} px, {args.part_views + 1}-view share, "
+                    "linear mean": coverage_frame(scene, camera, lens, st, args.sharp,
+                                                  args.part_views, True, doubling=True),
                 }
                 for key, image in frames.items():
                     cells.setdefault(key, []).append(f"{psnr(image, ref):.2f}")
