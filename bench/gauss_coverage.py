@@ -37,12 +37,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gaussians as G  # noqa: E402  (bench/gaussians.py: scenes, camera, lens)
 
 import dofsplat as ds  # noqa: E402
-from dofsplat.backends.cpu_gauss import draw_gaussians, project, to_linear_rgba  # noqa: E402
+from dofsplat.backends.cpu_gauss import (draw_gaussians, project, seen_in_view,  # noqa: E402
+                                        to_linear_rgba)
 from dofsplat.camera import effective_diameter, lens_camera  # noqa: E402
 from dofsplat.colors import linear_to_srgb, srgb_to_linear  # noqa: E402
 from dofsplat.frame import lens_parts  # noqa: E402
-from dofsplat.gauss.composite import (TILE, bin_tiles, composite_tiles, depth_order,  # noqa: E402
-                                      gaussian_alpha)
+from dofsplat.gauss.composite import gaussian_alpha  # noqa: E402
 from dofsplat.gauss.project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_G, F_OPACITY, F_R,  # noqa: E402
                                     F_X, F_Y, view_matrix)
 from dofsplat.jit import numba  # noqa: E402
@@ -70,16 +70,10 @@ def add_footprints(rows, boxes, visible, weight, color, alpha):
 
 def seen_shares(scene, camera, settings) -> np.ndarray:
     """(N,) each Gaussian's seen share in this sharp view, at most 1."""
-    rows, boxes, visible = project(scene, camera, None, settings)
-    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
-    offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
-    h, w = camera.height, camera.width
-    seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
-    composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
-                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
+    rows, visible, seen = seen_in_view(scene, camera, settings)
     det = np.maximum(rows[:, F_CA] * rows[:, F_CC] - rows[:, F_CB] ** 2, 1e-30)
     energy = rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
-    return np.where(visible, np.minimum(seen.sum(0) / np.maximum(energy, 1e-30), 1.0), 0.0)
+    return np.where(visible, np.minimum(seen / np.maximum(energy, 1e-30), 1.0), 0.0)
 
 
 def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,

@@ -394,16 +394,24 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
     surface too thin; only the hidden ones are to go)."""
     best = np.zeros(len(scene), np.float32)
     for cam in visibility_cameras(camera, lens, views, scale):
-        rows, boxes, visible = project(scene, cam, None, settings)
-        n_tx, n_ty = -(-cam.width // TILE), -(-cam.height // TILE)
-        offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
-        h, w = cam.height, cam.width
-        seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
-        composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
-                        np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
-        keep_best_share(rows, visible, seen.sum(axis=0), best)
+        rows, visible, seen = seen_in_view(scene, cam, settings)
+        keep_best_share(rows, visible, seen, best)
     finish_shares(best)
     return best
+
+
+def seen_in_view(scene, camera: Camera, settings: RenderSettings):
+    """(rows, visible, seen (N,) float32): a pinhole view's projection and each Gaussian's
+    visible alpha, alpha T summed over its pixels (``composite.seen_share`` makes it a share
+    of the footprint's integral)."""
+    rows, boxes, visible = project(scene, camera, None, settings)
+    n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
+    offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
+    h, w = camera.height, camera.width
+    seen = np.zeros((numba.get_num_threads() + 1, len(scene)), np.float32)
+    composite_tiles(rows, boxes, offsets, ids, n_tx, w, h, np.empty((h, w, 3), np.float32),
+                    np.empty((h, w), np.float32), np.empty((h, w), np.float32), seen)
+    return rows, visible, seen.sum(axis=0)
 
 
 def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSettings,
