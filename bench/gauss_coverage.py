@@ -4,6 +4,7 @@ reference over a black and a white background.
 
     python bench/gaussians.py --backgrounds             # today's frames over both backgrounds
     python bench/gauss_coverage.py --scenes guitar donut --coc 35 [--samples 128]
+    python bench/gauss_coverage.py --scenes guitar --share-scale 2 --share-eps 0.3
 
 Each prototype draws the lens in the default's 4 parts. Per part, the Gaussians are split by
 their residual circle of confusion into an in-focus slab (composited as the trainers do, each
@@ -68,17 +69,29 @@ def add_footprints(rows, boxes, visible, weight, color, alpha):
                     color[y, x, 2] += a * rows[i, F_B]
 
 
-def seen_shares(scene, camera, settings) -> np.ndarray:
-    """(N,) each Gaussian's seen share in this sharp view, at most 1."""
-    rows, visible, seen = seen_in_view(scene, camera, settings)
+def seen_shares(scene, camera, settings, eps2d=None) -> np.ndarray:
+    """(N,) each Gaussian's seen share in this sharp view, at most 1; eps2d: the view's
+    low-pass (px^2 of its pixels), the trainers' 0.3 where None."""
+    from dofsplat.backends import cpu_gauss
+
+    saved = cpu_gauss.EPS2D
+    cpu_gauss.EPS2D = saved if eps2d is None else eps2d
+    try:
+        rows, visible, seen = seen_in_view(scene, camera, settings)
+    finally:
+        cpu_gauss.EPS2D = saved
     det = np.maximum(rows[:, F_CA] * rows[:, F_CC] - rows[:, F_CB] ** 2, 1e-30)
     energy = rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
     return np.where(visible, np.minimum(seen / np.maximum(energy, 1e-30), 1.0), 0.0)
 
 
 def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
-                   linear_parts=True, doubling=False) -> np.ndarray:
-    """The prototype's frame, (H, W, 4) linear RGBA over settings.background."""
+                   linear_parts=True, doubling=False, shared_views=False, scale=1,
+                   eps2d=None) -> np.ndarray:
+    """The prototype's frame, (H, W, 4) linear RGBA over settings.background. shared_views:
+    one share per Gaussian for every part, the largest over the lens centre and 8 points at
+    0.7 of its radius (else each part's centre and part_views points of its rim); scale,
+    eps2d: the share views at 1/scale the resolution with that low-pass."""
     parts = lens_parts(camera, lens, dataclasses.replace(settings, lens_samples=4))
     view = view_matrix(camera)
     z = scene.positions.astype(np.float64) @ view[2, :3] + view[2, 3]
@@ -93,6 +106,8 @@ def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
     diameter = effective_diameter(camera, lens)
     bg = linear_to_srgb(np.asarray(settings.background, np.float64))
     h, w = camera.height, camera.width
+    small = dataclasses.replace(camera, width=max(1, w // scale), height=max(1, h // scale))
+    shared = {}
     color_sum, trans_sum, linear_sum = np.zeros((h, w, 3)), np.zeros((h, w)), np.zeros((h, w, 3))
     for k_part, cam in enumerate(parts.cameras):
         color, trans = np.zeros((h, w, 3)), np.ones((h, w))
@@ -103,12 +118,20 @@ def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
                 color += trans[..., None] * c
                 trans *= t
                 continue
-            u0 = np.asarray(parts.offsets[k_part], np.float64)
-            points = [u0] + [u0 + parts.rho * np.array([math.cos(a), math.sin(a)])
-                             for a in np.arange(part_views) * 2.0 * math.pi / max(part_views, 1)]
-            share = np.max([seen_shares(sub, lens_camera(camera, 0.5 * diameter * p,
-                                                         float(lens.focus_distance)), settings)
-                            for p in points], axis=0)
+            if shared_views:
+                points = [np.zeros(2)] + [0.7 * np.array([math.cos(a), math.sin(a)])
+                                          for a in np.arange(8) * math.pi / 4.0]
+            else:
+                u0 = np.asarray(parts.offsets[k_part], np.float64)
+                points = [u0] + [u0 + parts.rho * np.array([math.cos(a), math.sin(a)])
+                                 for a in np.arange(part_views) * 2.0 * math.pi / max(part_views, 1)]
+            if key not in shared:
+                shared[key] = np.max([seen_shares(sub, lens_camera(
+                    small, 0.5 * diameter * p, float(lens.focus_distance)), settings, eps2d)
+                    for p in points], axis=0)
+            share = shared[key]
+            if not shared_views:
+                del shared[key]
             rows, boxes, visible = project(sub, cam, parts.residual, settings)
             c, a = np.zeros((h, w, 3)), np.zeros((h, w))
             add_footprints(rows, boxes, visible, share, c, a)
@@ -138,6 +161,11 @@ def main(argv=None) -> int:
                              "(composited as the trainers do, its footprints blurred)")
     parser.add_argument("--part-views", type=int, default=4,
                         help="points of each part's rim besides its centre for the seen share")
+    parser.add_argument("--share-scale", type=int, default=4,
+                        help="the last variant's share views at 1/this the resolution")
+    parser.add_argument("--share-eps", type=float, default=1.0 / 12.0,
+                        help="the last variant's share views' low-pass, px^2 of their pixels "
+                             "(the trainers' 0.3; the lens visibility's 1/12)")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x"))
     settings = ds.RenderSettings(gaussian_lod=False)
@@ -163,6 +191,10 @@ def main(argv=None) -> int:
                     f"doubling slabs from {args.sharp} px, {args.part_views + 1}-view share, "
                     "linear mean": coverage_frame(scene, camera, lens, st, args.sharp,
                                                   args.part_views, True, doubling=True),
+                    f"the same, 9 shared views at 1/{args.share_scale} resolution, low-pass "
+                    f"{args.share_eps:.3g} px^2": coverage_frame(
+                        scene, camera, lens, st, args.sharp, 0, True, doubling=True,
+                        shared_views=True, scale=args.share_scale, eps2d=args.share_eps),
                 }
                 for key, image in frames.items():
                     cells.setdefault(key, []).append(f"{psnr(image, ref):.2f}")
