@@ -38,8 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gaussians as G  # noqa: E402  (bench/gaussians.py: scenes, camera, lens)
 
 import dofsplat as ds  # noqa: E402
-from dofsplat.backends.cpu_gauss import (draw_gaussians, project, seen_in_view,  # noqa: E402
-                                        to_linear_rgba)
+from dofsplat.backends.cpu_gauss import (draw_gaussians, lens_visibility_by_shifts,  # noqa: E402
+                                        project, seen_in_view, to_linear_rgba)
 from dofsplat.camera import effective_diameter, lens_camera  # noqa: E402
 from dofsplat.colors import linear_to_srgb, srgb_to_linear  # noqa: E402
 from dofsplat.frame import lens_parts  # noqa: E402
@@ -87,11 +87,13 @@ def seen_shares(scene, camera, settings, eps2d=None) -> np.ndarray:
 
 def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
                    linear_parts=True, doubling=False, shared_views=False, scale=1,
-                   eps2d=None) -> np.ndarray:
+                   eps2d=None, shifts=False) -> np.ndarray:
     """The prototype's frame, (H, W, 4) linear RGBA over settings.background. shared_views:
     one share per Gaussian for every part, the largest over the lens centre and 8 points at
     0.7 of its radius (else each part's centre and part_views points of its rim); scale,
-    eps2d: the share views at 1/scale the resolution with that low-pass."""
+    eps2d: the share views at 1/scale the resolution with that low-pass; shifts: those views
+    drawn as the lens visibility draws its own (``lens_visibility_by_shifts``: one
+    projection, moved)."""
     parts = lens_parts(camera, lens, dataclasses.replace(settings, lens_samples=4))
     view = view_matrix(camera)
     z = scene.positions.astype(np.float64) @ view[2, :3] + view[2, 3]
@@ -125,6 +127,12 @@ def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
                 u0 = np.asarray(parts.offsets[k_part], np.float64)
                 points = [u0] + [u0 + parts.rho * np.array([math.cos(a), math.sin(a)])
                                  for a in np.arange(part_views) * 2.0 * math.pi / max(part_views, 1)]
+            if key not in shared and shifts:
+                # one projection from the centre, moved to the 8 views (the mean exactly, the
+                # shape the centre's), as the renderer's lens visibility draws its views
+                shared[key] = lens_visibility_by_shifts(sub, camera, lens, settings, views=8,
+                                                        scale=scale, radius=0.7, eps2d=eps2d,
+                                                        raw=True)
             if key not in shared:
                 shared[key] = np.max([seen_shares(sub, lens_camera(
                     small, 0.5 * diameter * p, float(lens.focus_distance)), settings, eps2d)
@@ -195,6 +203,10 @@ def main(argv=None) -> int:
                     f"{args.share_eps:.3g} px^2": coverage_frame(
                         scene, camera, lens, st, args.sharp, 0, True, doubling=True,
                         shared_views=True, scale=args.share_scale, eps2d=args.share_eps),
+                    "the same, its views moved from one projection": coverage_frame(
+                        scene, camera, lens, st, args.sharp, 0, True, doubling=True,
+                        shared_views=True, scale=args.share_scale, eps2d=args.share_eps,
+                        shifts=True),
                 }
                 for key, image in frames.items():
                     cells.setdefault(key, []).append(f"{psnr(image, ref):.2f}")

@@ -34,8 +34,9 @@ from ..gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_WIDTH, N_
                             P_INV_FOCUS, P_NEAR, P_WIDTH, bin_images, combine_layers,
                             composite_images, image_table, layer_keys, live_tiles,
                             project_layers)
-from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
-                             project_gaussians, project_shifted_views, view_matrix)
+from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
+                             F_OPACITY, N_FIELDS, intrinsics, project_gaussians,
+                             project_shifted_views, view_matrix)
 from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
 from ..gaussians import Gaussians
 from ..splat.subaperture import aperture_second_moment
@@ -415,7 +416,9 @@ def seen_in_view(scene, camera: Camera, settings: RenderSettings):
 
 
 def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSettings,
-                              views: int | None = None, scale: int | None = None) -> np.ndarray:
+                              views: int | None = None, scale: int | None = None, *,
+                              radius: float = 1.0, eps2d: float | None = None,
+                              raw: bool = False) -> np.ndarray:
     """(N,) float32 in [0, 1]: ``lens_visibility``'s shares, from one projection (views,
     scale: ``LAYERS.visibility_views`` and ``visibility_scale`` where None). The views from
     the lens's rim differ from the centre's by a shear (``lens_camera``: a point at depth z
@@ -425,12 +428,16 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     (the depths are every view's), and each view's are those footprints moved
     (``project_shifted_views``: the mean exactly, the shape as the centre sees it); all the
     views' tiles are composited in one loop. Against ``lens_visibility`` from the same views
-    the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px)."""
+    the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px).
+    radius: the rim views at this fraction of the lens's radius; eps2d: their low-pass
+    (``LAYERS.visibility_eps2d`` where None); raw: each Gaussian's largest ``seen_share``
+    over the views, not ``lens_share`` of it (bench/gauss_coverage.py's weights)."""
     views = LAYERS.visibility_views if views is None else views
     if scale is None:
         scale = visibility_scale_for(scene.positions, camera, lens, settings)
     small, margin, shifts, inv_focus, near, view = shifted_views(scene.positions, camera, lens,
                                                                  settings, views, scale)
+    shifts = shifts * radius
     w, h = small.width, small.height
     n = len(scene)
     fx, fy, cx, cy = intrinsics(small)
@@ -445,7 +452,8 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     project_shifted_views(scene.positions, scene.scales, scene.rotations, scene.opacity,
                           scene.sh[:, :1], view, np.asarray(small.eye, np.float64), fx, fy,
                           cx + margin, cy + margin, w + 2 * margin, h + 2 * margin, near, 1e10,
-                          LAYERS.visibility_eps2d, settings.gaussian_antialiased, margin,
+                          LAYERS.visibility_eps2d if eps2d is None else eps2d,
+                          settings.gaussian_antialiased, margin,
                           shifts, inv_focus, rows, boxes, visible, view_rows, view_boxes,
                           view_visible)
     order = depth_order(rows, visible).astype(np.int32)
@@ -458,6 +466,13 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     composite_images(view_rows, view_boxes, offsets, ids, tile_image, table,
                      np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
                      np.empty(n_px, np.float32), seen)
+    if raw:
+        det = np.maximum(view_rows[:, F_CA].astype(np.float64) * view_rows[:, F_CC]
+                         - view_rows[:, F_CB].astype(np.float64) ** 2, 1e-30)
+        energy = view_rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
+        share = np.where(view_visible, np.minimum(seen.sum(axis=0) / np.maximum(energy, 1e-30),
+                                                  1.0), 0.0)
+        return share.reshape(m, n).max(axis=0).astype(np.float32)
     best = np.empty(n, np.float32)
     best_view_shares(view_rows, view_visible, seen, n, best)
     return best
