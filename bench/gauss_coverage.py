@@ -5,6 +5,7 @@ reference over a black and a white background.
     python bench/gaussians.py --backgrounds             # today's frames over both backgrounds
     python bench/gauss_coverage.py --scenes guitar donut --coc 35 [--samples 128]
     python bench/gauss_coverage.py --scenes guitar --share-scale 2 --share-eps 0.3
+    python bench/gauss_coverage.py --cost --scenes guitar playbot --coc 10 35   # the shares' cost
 
 Each prototype draws the lens in the default's 4 parts. Per part, the Gaussians are split by
 their residual circle of confusion into an in-focus slab (composited as the trainers do, each
@@ -157,6 +158,53 @@ def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
     return np.concatenate([linear_sum / n, 1.0 - trans_sum[..., None] / n], -1).astype(np.float32)
 
 
+def share_cost(names, cocs, size, sharp=1.5, repeat=5) -> None:
+    """The shares' cost as the renderer would draw them (one shifted-views projection per
+    blurred slab, 8 views at 1/4 resolution) against today's lens visibility on the same
+    Gaussians and today's frame, no LOD: medians of ``repeat`` turns of the three."""
+    import time
+
+    from dofsplat.backends.cpu_gauss import visibility_scale_for
+
+    settings = ds.RenderSettings(gaussian_lod=False)
+    for name in names:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scene = ds.io.load(G.SCENES[name])
+        camera = G.default_camera(scene, *size)
+        depth = ds.render(scene, camera, None, settings).depth
+        for coc in cocs:
+            lens = G.lens_for(scene, camera, coc, depth)
+            parts = lens_parts(camera, lens, dataclasses.replace(settings, lens_samples=4))
+            view = view_matrix(camera)
+            z = scene.positions.astype(np.float64) @ view[2, :3] + view[2, 3]
+            k, inv_focus = parts.residual.coc_coefficients(camera)
+            r = k * (1.0 / np.maximum(z, 1e-9) - inv_focus)
+            a = np.abs(r)
+            level = 1 + np.floor(np.log2(np.maximum(a, sharp) / sharp)).astype(int)
+            slab = np.where(a < sharp, 0, np.sign(r).astype(int) * level)
+            subs = [scene.subset(np.flatnonzero(slab == key)) for key in set(slab.tolist())
+                    if key != 0]
+            scale = visibility_scale_for(scene.positions, camera, lens, settings)
+            turns = {
+                "today's lens visibility": lambda: lens_visibility_by_shifts(
+                    scene, camera, lens, settings, scale=scale),
+                "the slabs' shares": lambda: [lens_visibility_by_shifts(
+                    sub, camera, lens, settings, views=8, scale=4, radius=0.7, eps2d=0.04,
+                    raw=True) for sub in subs],
+                "today's frame": lambda: ds.render(scene, camera, lens, settings),
+            }
+            times = {key: [] for key in turns}
+            for turn in range(repeat + 1):
+                for key, run in turns.items():
+                    t = time.perf_counter()
+                    run()
+                    if turn:  # the first turn warms up
+                        times[key].append(time.perf_counter() - t)
+            print(f"  {name} {coc:.0f} px, {len(subs)} blurred slabs: " + ", ".join(
+                f"{key} {1000 * np.median(v):.1f} ms" for key, v in times.items()), flush=True)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", default=["guitar", "biker", "donut", "fruit"],
@@ -174,8 +222,13 @@ def main(argv=None) -> int:
     parser.add_argument("--share-eps", type=float, default=1.0 / 12.0,
                         help="the last variant's share views' low-pass, px^2 of their pixels "
                              "(the trainers' 0.3; the lens visibility's 1/12)")
+    parser.add_argument("--cost", action="store_true",
+                        help="only the shares' cost against today's lens visibility and frame")
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().split("x"))
+    if args.cost:
+        share_cost(args.scenes, args.coc, size, args.sharp)
+        return 0
     settings = ds.RenderSettings(gaussian_lod=False)
     for name in args.scenes:
         with warnings.catch_warnings():
