@@ -251,6 +251,31 @@ def test_lens_visibility_finds_what_the_whole_lens_cannot_see(by_shifts):
     assert front[-1] > 0.99
 
 
+def test_raw_shares_are_the_lens_visibility_before_its_clip():
+    """``lens_visibility_by_shifts(raw=True)`` (bench/gauss_coverage.py's weights) returns
+    each Gaussian's largest seen share over the views: the default's shares are that over
+    SHARE_SEEN, at most 1 (to float32 rounding), on a random scene whose shares lie on both
+    sides of the clip; radius moves the rim views inwards (the sheet's hidden Gaussian stays
+    hidden at 0.7, its sheet seen: a median share of 0.15 measured)."""
+    from dofsplat.backends import cpu_gauss
+    from dofsplat.gauss.composite import SHARE_SEEN
+
+    g = scene(n=400, seed=5, degree=0, spread=0.6)
+    cam = camera(96, 72)
+    lens = ds.ThinLens(focus_distance=2.5, aperture=1.0)
+    st = ds.RenderSettings()
+    clipped = cpu_gauss.lens_visibility_by_shifts(g, cam, lens, st)
+    raw = cpu_gauss.lens_visibility_by_shifts(g, cam, lens, st, raw=True)
+    # some below the clip (4 % measured), most well above it (the 90th percentile 0.88)
+    assert np.mean(raw < SHARE_SEEN) > 0.01 and np.quantile(raw, 0.9) > 0.5
+    np.testing.assert_allclose(clipped, np.minimum(raw / SHARE_SEEN, 1.0), atol=1e-5)
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40, near=0.01)
+    sheet = cpu_gauss.lens_visibility_by_shifts(sheet_and_hidden(), cam,
+                                                ds.ThinLens(focus_distance=3.0, aperture=0.3),
+                                                st, radius=0.7, raw=True)
+    assert sheet[-1] < 1e-3 and np.median(sheet[:-1]) > 0.05
+
+
 def _layered_and_whole(layer_settings, n=600, seed=11):
     """The lens in 4 parts, drawn in layers (``cpu_gauss.draw_layered`` with these
     ``LayerSettings``) and each part whole (``draw_passes``), the same lens visibility:
