@@ -44,9 +44,9 @@ from dofsplat.backends.cpu_gauss import (draw_gaussians, lens_visibility_by_shif
 from dofsplat.camera import effective_diameter, lens_camera  # noqa: E402
 from dofsplat.colors import linear_to_srgb, srgb_to_linear  # noqa: E402
 from dofsplat.frame import lens_parts  # noqa: E402
-from dofsplat.gauss.composite import gaussian_alpha  # noqa: E402
-from dofsplat.gauss.project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_G, F_OPACITY, F_R,  # noqa: E402
-                                    F_X, F_Y, view_matrix)
+from dofsplat.gauss.composite import gaussian_alpha, seen_shares  # noqa: E402
+from dofsplat.gauss.project import (EPS2D, F_B, F_CA, F_CB, F_CC, F_CUT, F_G,  # noqa: E402
+                                    F_OPACITY, F_R, F_X, F_Y, view_matrix)
 from dofsplat.jit import numba  # noqa: E402
 from dofsplat.metrics import psnr  # noqa: E402
 from dofsplat.reference import render_reference  # noqa: E402
@@ -70,20 +70,14 @@ def add_footprints(rows, boxes, visible, weight, color, alpha):
                     color[y, x, 2] += a * rows[i, F_B]
 
 
-def seen_shares(scene, camera, settings, eps2d=None) -> np.ndarray:
+def view_shares(scene, camera, settings, eps2d=None) -> np.ndarray:
     """(N,) each Gaussian's seen share in this sharp view, at most 1; eps2d: the view's
     low-pass (px^2 of its pixels), the trainers' 0.3 where None."""
-    from dofsplat.backends import cpu_gauss
-
-    saved = cpu_gauss.EPS2D
-    cpu_gauss.EPS2D = saved if eps2d is None else eps2d
-    try:
-        rows, visible, seen = seen_in_view(scene, camera, settings)
-    finally:
-        cpu_gauss.EPS2D = saved
-    det = np.maximum(rows[:, F_CA] * rows[:, F_CC] - rows[:, F_CB] ** 2, 1e-30)
-    energy = rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
-    return np.where(visible, np.minimum(seen / np.maximum(energy, 1e-30), 1.0), 0.0)
+    rows, visible, seen = seen_in_view(scene, camera, settings,
+                                       EPS2D if eps2d is None else eps2d)
+    out = np.empty(len(scene), np.float32)
+    seen_shares(rows, visible, seen, out)
+    return out
 
 
 def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
@@ -135,7 +129,7 @@ def coverage_frame(scene, camera, lens, settings, sharp_px=0.5, part_views=0,
                                                         scale=scale, radius=0.7, eps2d=eps2d,
                                                         raw=True)
             if key not in shared:
-                shared[key] = np.max([seen_shares(sub, lens_camera(
+                shared[key] = np.max([view_shares(sub, lens_camera(
                     small, 0.5 * diameter * p, float(lens.focus_distance)), settings, eps2d)
                     for p in points], axis=0)
             share = shared[key]

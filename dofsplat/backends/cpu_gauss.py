@@ -28,15 +28,15 @@ from ..camera import Camera, effective_diameter, lens_camera
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
 from ..gauss.composite import (TILE, best_view_shares, bin_tiles, composite_tiles,
-                               depth_order, finish_image, finish_shares, keep_best_share)
+                               depth_order, finish_image, finish_shares, keep_best_share,
+                               seen_shares)
 from ..gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_WIDTH, N_P,
                             P_BLUR_VARIANCE, P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT,
                             P_INV_FOCUS, P_NEAR, P_WIDTH, bin_images, combine_layers,
                             composite_images, image_table, layer_keys, live_tiles,
                             project_layers)
-from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, F_CA, F_CB, F_CC,
-                             F_OPACITY, N_FIELDS, intrinsics, project_gaussians,
-                             project_shifted_views, view_matrix)
+from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
+                             project_gaussians, project_shifted_views, view_matrix)
 from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
 from ..gaussians import Gaussians
 from ..splat.subaperture import aperture_second_moment
@@ -341,7 +341,7 @@ def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSetti
 
 
 def project(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
-            blur: str = "ours", share=None):
+            blur: str = "ours", share=None, eps2d: float = EPS2D):
     """(rows (N, N_FIELDS) float32, boxes (N, 4) int32, visible (N,) bool): ``project_gaussians``
     for this camera and lens (share: ``lens_visibility``'s, or None)."""
     n = len(scene)
@@ -354,7 +354,7 @@ def project(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
     project_gaussians(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
                       view_matrix(camera), np.asarray(camera.eye, np.float64), fx, fy, cx, cy,
                       camera.width, camera.height, camera.near if camera.frustum is None
-                      else camera.frustum[4], 1e10, EPS2D, settings.gaussian_antialiased,
+                      else camera.frustum[4], 1e10, eps2d, settings.gaussian_antialiased,
                       mode, coc_k, inv_focus, blur_variance(lens),
                       NO_SHARE if share is None else share, rows, boxes, visible)
     return rows, boxes, visible
@@ -401,11 +401,11 @@ def lens_visibility(scene: Gaussians, camera: Camera, lens, settings: RenderSett
     return best
 
 
-def seen_in_view(scene, camera: Camera, settings: RenderSettings):
-    """(rows, visible, seen (N,) float32): a pinhole view's projection and each Gaussian's
-    visible alpha, alpha T summed over its pixels (``composite.seen_share`` makes it a share
-    of the footprint's integral)."""
-    rows, boxes, visible = project(scene, camera, None, settings)
+def seen_in_view(scene, camera: Camera, settings: RenderSettings, eps2d: float = EPS2D):
+    """(rows, visible, seen (N,) float32): a pinhole view's projection (with the low-pass
+    eps2d, px^2) and each Gaussian's visible alpha, alpha T summed over its pixels
+    (``composite.seen_share`` makes it a share of the footprint's integral)."""
+    rows, boxes, visible = project(scene, camera, None, settings, eps2d=eps2d)
     n_tx, n_ty = -(-camera.width // TILE), -(-camera.height // TILE)
     offsets, ids = bin_tiles(depth_order(rows, visible), boxes, n_tx, n_ty)
     h, w = camera.height, camera.width
@@ -467,12 +467,9 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
                      np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
                      np.empty(n_px, np.float32), seen)
     if raw:
-        det = np.maximum(view_rows[:, F_CA].astype(np.float64) * view_rows[:, F_CC]
-                         - view_rows[:, F_CB].astype(np.float64) ** 2, 1e-30)
-        energy = view_rows[:, F_OPACITY] * 2.0 * math.pi / np.sqrt(det)
-        share = np.where(view_visible, np.minimum(seen.sum(axis=0) / np.maximum(energy, 1e-30),
-                                                  1.0), 0.0)
-        return share.reshape(m, n).max(axis=0).astype(np.float32)
+        share = np.empty(m * n, np.float32)
+        seen_shares(view_rows, view_visible, seen.sum(axis=0), share)
+        return share.reshape(m, n).max(axis=0)
     best = np.empty(n, np.float32)
     best_view_shares(view_rows, view_visible, seen, n, best)
     return best

@@ -219,6 +219,14 @@ def lens_share(best):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
+def seen_shares(rows, visible, seen, out):
+    """out[i] = ``seen_share`` of each visible row (0 for the others); seen: (N,) its alpha T
+    summed over the pixels."""
+    for i in numba.prange(visible.shape[0]):
+        out[i] = seen_share(rows, i, float(seen[i])) if visible[i] else 0.0
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def keep_best_share(rows, visible, seen, best):
     """best[i] = max(best[i], seen_share) for the visible rows; seen: (N,) the view's alpha
     T summed per Gaussian."""
