@@ -295,8 +295,8 @@ def visibility(names, size, samples) -> None:
 def backgrounds(names, size, samples) -> None:
     """The default frame, no LOD, one pass, the viewers' blur and the pinhole image against the
     lens reference over a black background (the bench's) and a white one, whole-frame PSNR,
-    and the alpha channel's PSNR (the same on both): a black background hides a frame's
-    excess coverage where that coverage is dark, a white one shows it."""
+    and the alpha channel's PSNR and sum (the same on both): a black background hides a
+    frame's excess coverage where that coverage is dark, a white one shows it."""
     import dofsplat as ds
     from dofsplat.metrics import psnr
 
@@ -311,8 +311,9 @@ def backgrounds(names, size, samples) -> None:
                       for k, v in variants.items()}
             frames["pinhole"] = ds.render(scene, camera, None, settings)
             cells = [f"{k} {psnr(f.image, ref.image):.2f} (alpha "
-                     f"{psnr(f.image[..., 3], ref.image[..., 3], 'linear'):.1f})"
-                     for k, f in frames.items()]
+                     f"{psnr(f.image[..., 3], ref.image[..., 3], 'linear'):.1f}, summed "
+                     f"{f.image[..., 3].sum():,.0f})" for k, f in frames.items()]
+            cells.append(f"reference's alpha summed {ref.image[..., 3].sum():,.0f}")
             print(f"  {name} {coc:.0f} px, background {bg[0]:.0f}: " + " | ".join(cells),
                   flush=True)
 
