@@ -425,8 +425,9 @@ def _assert_same_gaussian_frame(cpu, gpu):
 ], ids=["pinhole", "default", "viewers", "one-pass-antialiased"])
 def test_gaussian_frame_matches_cpu(aperture, settings):
     """A Gaussian scene's frame on both devices: the pinhole, the default frame through a
-    lens (the lens in layers, ``cpu_gauss.LAYERS``: with the stage tests it launches every
-    kernel of backends/cuda_gauss.py but the parts drawn whole's), the viewers' blur, and
+    lens (the lens in layers, ``cpu_gauss.LAYERS``, a summed layer among them: with the
+    stage tests it launches every kernel of backends/cuda_gauss.py but the parts drawn
+    whole's), the viewers' blur, and
     one pass with gsplat's antialiased opacity."""
     scene, camera = _gaussians(), _gaussian_camera()
     lens = ds.ThinLens(focus_distance=2.5, aperture=aperture) if aperture else None
@@ -434,8 +435,11 @@ def test_gaussian_frame_matches_cpu(aperture, settings):
     gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda", **settings))
     assert gpu.stats["device"] == "cuda"
     assert cpu.stats["splats_rendered"] > 0 and np.ptp(cpu.image[..., :3]) > 0.1
-    if "layers" in cpu.stats:  # the images of the in-focus slab and each part's layers
+    if "layers" in cpu.stats:  # the images of the in-focus slab and each part's layers,
+        # one layer summed (``cpu_gauss.mark_summed``), its weights from its own views
         assert cpu.stats["layers"] >= 9 and gpu.stats["layers"] == cpu.stats["layers"]
+        assert cpu.stats["summed_layers"] >= 1
+        assert gpu.stats["summed_layers"] == cpu.stats["summed_layers"]
     _assert_same_gaussian_frame(cpu, gpu)
 
 

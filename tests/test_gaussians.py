@@ -169,6 +169,52 @@ def test_fast_kernels_match_the_slow_twins_pinhole_and_blurred():
         np.testing.assert_allclose(trans, want_trans, atol=2e-5, err_msg=blur)
 
 
+def test_summed_compositing_matches_the_slow_twin():
+    """A summed layer's image (``composite_images`` on an image flagged ``IM_SUM``, the rows'
+    opacity and cut times a weight as ``project_layers`` does) against ``slow.composite_summed``:
+    every footprint added, the coverage clamped at 1; to 2e-5 (float32 rows against
+    float64) but where an alpha sits at its cut. Blurred, so that footprints overlap and some pixels' sums pass 1."""
+    from dofsplat.backends.cpu_gauss import NO_SEEN, project
+    from dofsplat.gauss.layers import bin_images, composite_images, image_table
+    from dofsplat.gauss.project import F_CUT, F_OPACITY
+
+    g = scene(n=60, seed=4, degree=1, opacity=(0.6, 1.0))
+    cam = camera()
+    lens = ds.ThinLens(focus_distance=2.0, aperture=0.15)
+    st = ds.RenderSettings()
+    weights = np.random.default_rng(6).uniform(0.2, 1.0, len(g)).astype(np.float32)
+    rows, boxes, visible = project(g, cam, lens, st)
+    rows[:, F_OPACITY] *= weights
+    rows[:, F_CUT] *= weights
+    table = image_table([(cam.width, cam.height, 1, 0, 0, len(g), 1)])
+    offsets, ids, tile_image = bin_images(table, np.arange(len(g), dtype=np.int32), boxes,
+                                          visible)
+    n_px = cam.width * cam.height
+    colour, trans, depth = (np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
+                            np.empty(n_px, np.float32))
+    composite_images(rows, boxes, offsets, ids, tile_image, table,
+                     np.ones(len(tile_image), np.bool_), colour, trans, depth, NO_SEEN)
+    fx, fy, cx, cy = intrinsics(cam)
+    view = view_matrix(cam)
+    footprints, kept = [], []
+    for i in range(len(g)):
+        coc = lens.coc_radius_px((view[:3, :3] @ g.positions[i] + view[:3, 3])[2], cam)
+        fp = slow.project_one(g.positions[i], g.scales[i], g.rotations[i], g.opacity[i],
+                              g.sh[i], view, np.asarray(cam.eye), fx, fy, cx, cy, cam.width,
+                              cam.height, blur_variance(lens) * coc ** 2, spread_cut=True)
+        if fp is not None and fp[3] >= fp[4]:
+            footprints.append(fp)
+            kept.append(weights[i])
+    want_colour, want_trans = slow.composite_summed(footprints, cam.width, cam.height, kept)
+    assert (want_trans == 0.0).mean() > 0.01  # some pixels' coverage clamped (1.7 %)
+    got = np.concatenate([colour.reshape(want_colour.shape), trans.reshape(want_trans.shape)[
+        ..., None]], -1)
+    diff = np.abs(got - np.concatenate([want_colour, want_trans[..., None]], -1))
+    # where an alpha sits at its cut, float32 and float64 may decide it apart: at most a
+    # cut's worth (1/255; one pixel here, by 0.0018)
+    assert (diff.max(axis=-1) > 2e-5).mean() < 1e-3 and diff.max() < 1.0 / 255.0
+
+
 def test_blur_spreads_opacity_and_keeps_energy():
     """With the lens, a Gaussian's alpha image keeps its integral (the opacity spread over
     the wider footprint): within 2 % of the pinhole's, at CoCs of 3 and 8 px."""
@@ -298,9 +344,93 @@ def _layered_and_whole(layer_settings, n=600, seed=11):
                                           share[layers.order])
     finally:
         cg.LAYERS = saved
-    color, trans, whole_depth, _ = cg.draw_passes(g, cam, lens, parts, st, "ours", share)
-    whole = cg.to_linear_rgba(color, trans, st.background, 1.0 / len(parts.cameras))
+    whole, whole_depth, _ = cg.draw_passes(g, cam, lens, parts, st, "ours", share)
     return image, depth, whole, whole_depth, layers
+
+
+def test_a_blurred_stack_keeps_the_coverage_its_sharp_view_shows():
+    """Four coincident Gaussians (opacity 0.6, 8.8 px wide) blurred by a 46 px circle of
+    confusion (a part's blur 12 px: summed, ``cpu_gauss.mark_summed``): a summed layer adds
+    their blurred footprints, each weighted by the share of it a sharp view sees
+    (``cpu_gauss.layer_shares``), so the frame's alpha summed over its pixels is the
+    pinhole frame's (the blur keeps each footprint's energy): within 3 % (+1.9 % measured;
+    the lens reference's own is +4.0 %). Blended "over" one another instead (the layers
+    before summing, ``summed_level`` past every layer) their blurred footprints no longer
+    cover one another: 33.8 % more (docs/maths.md, "Gaussian scenes", item 2)."""
+    from dofsplat.backends import cpu_gauss as cg
+
+    k = 4
+    g = Gaussians(positions=np.zeros((k, 3)), scales=np.full((k, 3), 0.15),
+                  rotations=[[1, 0, 0, 0]] * k, opacity=np.full(k, 0.6),
+                  sh=np.zeros((k, 1, 3)))
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=128, height=128, fov_y=40,
+                    near=0.01)
+    lens = ds.ThinLens(focus_distance=8.0, aperture=2.5)
+    assert lens.coc_radius_px(3.0, cam) == pytest.approx(45.8, abs=0.1)
+    st = ds.RenderSettings(gaussian_lod=False)
+    pinhole = ds.render(g, cam, None, st).image[..., 3].sum()
+    summed = ds.render(g, cam, lens, st).image[..., 3].sum()
+    assert summed == pytest.approx(pinhole, rel=0.03)
+    saved = cg.LAYERS
+    cg.LAYERS = dataclasses.replace(saved, summed_level=saved.split_level + 1)
+    try:
+        over = ds.render(g, cam, lens, st).image[..., 3].sum()
+    finally:
+        cg.LAYERS = saved
+    assert over > 1.2 * pinhole
+
+
+def dark_sheet(n=400, seed=3):
+    """A flat sheet of n overlapping, dark, half-transparent Gaussians at z = 0 (jittered by
+    0.01), 1.2 units wide: a surface whose coverage a blurred frame over-counts."""
+    rng = np.random.default_rng(seed)
+    pos = np.c_[rng.uniform(-0.6, 0.6, (n, 2)), rng.normal(0, 0.01, n)]
+    return Gaussians(positions=pos,
+                     scales=np.tile([0.08, 0.08, 0.01], (n, 1)) * rng.uniform(0.7, 1.3, (n, 1)),
+                     rotations=[[1, 0, 0, 0]] * n, opacity=rng.uniform(0.5, 0.9, n),
+                     sh=(rng.uniform(0.05, 0.35, (n, 1, 3)) - 0.5) / 0.28209479177387814)
+
+
+@pytest.mark.parametrize("aperture, c_r, white, black", [
+    (0.6, 8.2, 28.91, 50.19),  # the blur narrower than the footprints: not summed
+    (1.6, 22.0, 33.18, 31.35),  # summed
+])
+def test_a_blurred_dark_sheet_over_white_against_the_reference(aperture, c_r, white, black):
+    """The dark sheet blurred, against the 64-sample lens reference over white and over
+    black (PSNR, dB, measured here; 0.5 dB of margin for float order). At 22 px its layer
+    is summed: over white 33.2 where blended "over" (``summed_level`` past every layer) it
+    was 18.6 and the pinhole image is 13.1; over black 31.4, the blended frame's 38.7
+    (docs/maths.md, "Gaussian scenes", item 2, says what summing costs there). At 8 px
+    a part's blur (sigma 1.4 px) is narrower than the sheet's footprints (3.5 px), so
+    ``mark_summed`` leaves the layer blended: summed, it was 24.5 / 32.9."""
+    from dofsplat.backends import cpu_gauss as cg
+    from dofsplat.metrics import psnr
+    from dofsplat.reference import render_reference
+
+    g = dark_sheet()
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40,
+                    near=0.01)
+    lens = ds.ThinLens(focus_distance=8.0, aperture=aperture)
+    assert lens.coc_radius_px(3.0, cam) == pytest.approx(c_r, abs=0.1)
+    scores = {}
+    for bg in (0.0, 1.0):
+        st = ds.RenderSettings(gaussian_lod=False, background=(bg,) * 3)
+        ref = render_reference(g, cam, lens, st, samples=64, progress=False).image
+        frame = ds.render(g, cam, lens, st).image
+        saved = cg.LAYERS
+        cg.LAYERS = dataclasses.replace(saved, summed_level=saved.split_level + 1)
+        try:
+            blended = ds.render(g, cam, lens, st).image
+        finally:
+            cg.LAYERS = saved
+        pinhole = ds.render(g, cam, None, st).image
+        scores[bg] = [psnr(im, ref) for im in (frame, blended, pinhole)]
+    assert scores[1.0][0] > white - 0.5 and scores[0.0][0] > black - 0.5, scores
+    assert scores[1.0][0] > scores[1.0][2] + 5.0 and scores[0.0][0] > scores[0.0][2], scores
+    if c_r > 20:
+        assert scores[1.0][0] > scores[1.0][1] + 10.0, scores
+    else:
+        assert scores[1.0][0] == scores[1.0][1] and scores[0.0][0] == scores[0.0][1], scores
 
 
 def test_layers_at_full_resolution_are_the_parts_drawn_whole():
@@ -314,7 +444,7 @@ def test_layers_at_full_resolution_are_the_parts_drawn_whole():
     from dofsplat.backends.cpu_gauss import LAYERS
 
     image, depth, whole, whole_depth, layers = _layered_and_whole(
-        dataclasses.replace(LAYERS, max_level=0, sharp_coc=0.0))
+        dataclasses.replace(LAYERS, max_level=0, split_level=0, sharp_coc=0.0))
     spans = np.diff(layers.spans, axis=1).ravel()
     assert spans[0] > 100 and spans[-1] > 100  # in front of the focus and behind it
     assert np.abs(image - whole).max() <= 2e-5
@@ -332,7 +462,8 @@ def test_coarse_layers_stay_near_the_parts_drawn_whole():
     from dofsplat.backends.cpu_gauss import LAYERS
     from dofsplat.metrics import psnr
 
-    image, _, whole, _, layers = _layered_and_whole(LAYERS)
+    image, _, whole, _, layers = _layered_and_whole(
+        dataclasses.replace(LAYERS, summed_level=LAYERS.split_level + 1))
     assert np.diff(layers.spans, axis=1).ravel()[layers.scales >= 8].sum() > 50
     assert psnr(image, whole) > 38.0
 

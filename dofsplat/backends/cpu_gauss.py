@@ -7,9 +7,10 @@ Through a lens with our blur (``gaussian_blur = "ours"``) the frame first takes 
 (``lod_cut``) and what the lens sees of each Gaussian (the lens visibility). With the lens
 in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default, and
 ``lens_samples``; ``frame.lens_parts``) the frame is K passes, each seen from its part's
-centroid with the residual blur, averaged; each pass is drawn in layers (``LAYERS``,
-``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution its blur
-allows, every image of the frame composited in one loop: at a 35 px blur 1.3-2.6 x the
+centroid with the residual blur, averaged in linear light; each pass is drawn in layers
+(``LAYERS``, ``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution
+its blur allows, the blurred ones summed (``mark_summed``, ``layer_shares``: the weights
+replace the lens visibility), every image of the frame composited in one loop: at a 35 px blur 1.3-2.6 x the
 pinhole frame on the four large shared scenes at 320 x 240, where the parts drawn whole
 cost 4.9-13.4 x (``python bench/gaussians.py --size 320x240``, 2026-11-28, the 2-core AMD
 EPYC, shared), within -0.6 / +0.9 dB of them against the lens reference.
@@ -27,9 +28,10 @@ from ..jit import numba
 from ..camera import Camera, effective_diameter, lens_camera
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
-from ..gauss.composite import (TILE, best_view_shares, bin_tiles, composite_tiles,
-                               depth_order, finish_image, finish_shares, keep_best_share,
-                               seen_shares)
+from ..gauss.composite import (TILE, add_linear_parts, best_view_shares, bin_tiles,
+                               composite_tiles, depth_order, finish_image,
+                               finish_linear_image, finish_shares, keep_best_share,
+                               raw_view_shares)
 from ..gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_WIDTH, N_P,
                             P_BLUR_VARIANCE, P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT,
                             P_INV_FOCUS, P_NEAR, P_WIDTH, bin_images, combine_layers,
@@ -56,6 +58,8 @@ class LayerSettings:
     enabled: bool = True  # False: each part drawn whole at full resolution, and lens_visibility (the frame of 2026-11-28)
     alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
+    split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale)
+    summed_ratio: float = 1.0  # ... and where a part's blur is at least this x its Gaussians' footprints (median; ``mark_summed``)
     sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
@@ -63,6 +67,11 @@ class LayerSettings:
     visibility_max_scale: int = 16  # ... at most 1/this the resolution ...
     visibility_min_size: int = 120  # ... and never coarser than 1/visibility_scale where that leaves the visibility image fewer pixels than this along its longer side
     visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
+    summed_level: int = 1  # (``mark_summed``) layers of this level and coarser (blur sigma >= alpha 2^level px) are summed, not blended (docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before 2026-11-28's evening, with the lens visibility)
+    share_views: int = 8  # a summed layer's weights: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
+    share_radius: float = 0.7  # ... at this fraction of the lens's radius ...
+    share_scale: int = 4  # ... at 1/this the resolution ...
+    share_eps2d: float = 0.04  # ... with this low-pass, px^2 of their pixels
 
 
 LAYERS = LayerSettings()
@@ -91,6 +100,10 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     t = time.perf_counter()
     share = None
     if layered:
+        stats["summed_layers"] = len(summed_layers(layers))
+    if layered and summed_layers(layers):
+        share = layer_shares(scene, layers, camera, lens, settings)
+    elif layered:
         share = lens_visibility_by_shifts(scene, camera, lens, settings, scale=vis_scale)
         stats["visibility_scale"] = vis_scale
     elif blur == "ours" and blurred:
@@ -99,10 +112,7 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     if layered:
         image, depth, drawn = draw_layered(scene, layers, camera, lens, parts, settings, share)
     else:
-        color, trans, depth, drawn = draw_passes(scene, camera, lens, parts, settings, blur,
-                                                 share)
-        image = to_linear_rgba(color, trans, settings.background,
-                               1.0 if parts is None else 1.0 / len(parts.cameras))
+        image, depth, drawn = draw_passes(scene, camera, lens, parts, settings, blur, share)
     stats.update(drawn)
     stats.update(points_in=n_in, width=camera.width, height=camera.height,
                  total_ms=(time.perf_counter() - t0) * 1000.0)
@@ -112,22 +122,27 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
 
 def draw_passes(scene, camera: Camera, lens, parts, settings: RenderSettings, blur: str,
                 share):
-    """One pass (parts None), or each part drawn whole at full resolution and summed: (color
-    (H, W, 3), transmittance (H, W), depth (H, W), stats)."""
+    """One pass (parts None), or each part drawn whole at full resolution, over the
+    background and averaged in linear light (``gauss.composite.add_linear_part``): (image
+    (H, W, 4) linear RGBA, depth (H, W), stats)."""
     if parts is None:
-        return draw_gaussians(scene, camera, lens, settings, blur, share)
-    color = np.zeros((camera.height, camera.width, 3), np.float64)
-    trans = np.zeros((camera.height, camera.width), np.float64)
-    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+        color, trans, depth, stats = draw_gaussians(scene, camera, lens, settings, blur, share)
+        return to_linear_rgba(color, trans, settings.background), depth, stats
+    h, w = camera.height, camera.width
+    bg = linear_to_srgb(np.asarray(settings.background, np.float64))
+    color = np.zeros((h, w, 3), np.float32)
+    trans = np.zeros((h, w), np.float32)
+    depth = np.full((h, w), np.inf, np.float32)
     stats = {"splats_rendered": 0, "fragments": 0}
     for cam in parts.cameras:
         c, t, d, s = draw_gaussians(scene, cam, parts.residual, settings, blur, share)
-        color += c
-        trans += t
+        add_linear_parts(c, t, bg, color, trans)
         np.minimum(depth, d, out=depth)
         for key in stats:
             stats[key] += s[key]
-    return color, trans, depth, stats
+    image = np.empty((h, w, 4), np.float32)
+    finish_linear_image(color, trans, 1.0 / len(parts.cameras), image)
+    return image, depth, stats
 
 
 def lod_cut(scene: Gaussians, camera: Camera, lens, settings: RenderSettings) -> GaussianArrays:
@@ -157,6 +172,8 @@ class Layers:
     order: np.ndarray  # (N,) int64: the frame's Gaussians in memory order
     spans: np.ndarray  # (L, 2) int64: layer j (front to back) is memory rows spans[j, 0] .. spans[j, 1]
     scales: np.ndarray  # (L,) int64: layer j is drawn at 1/scales[j] the resolution
+    levels: np.ndarray  # (L,) int64: layer j's level (``layer_keys``)
+    summed: np.ndarray  # (L,) bool: layer j's Gaussians are summed, not blended (``mark_summed``)
     sharp: int  # the sharp slab's layer (drawn once, from the lens centre): first in memory
 
 
@@ -167,12 +184,39 @@ def in_layers(scene: Gaussians, camera: Camera, lens, parts, settings: RenderSet
     if lod:
         tree, rows = lod_rows(scene, camera, parts.residual, settings)
         layers = layer_order(tree.positions[rows], camera, lens, parts)
-        return cut_arrays(tree, rows[layers.order]), layers
-    layers = layer_order(scene.positions, camera, lens, parts)
-    o = layers.order
-    return GaussianArrays(positions=scene.positions[o], scales=scene.scales[o],
-                          rotations=scene.rotations[o], opacity=scene.opacity[o],
-                          sh=scene.sh[o], level=np.zeros(len(o), np.int8)), layers
+        arrays = cut_arrays(tree, rows[layers.order])
+    else:
+        layers = layer_order(scene.positions, camera, lens, parts)
+        o = layers.order
+        arrays = GaussianArrays(positions=scene.positions[o], scales=scene.scales[o],
+                                rotations=scene.rotations[o], opacity=scene.opacity[o],
+                                sh=scene.sh[o], level=np.zeros(len(o), np.int8))
+    mark_summed(arrays, layers, camera, lens, parts)
+    return arrays, layers
+
+
+def mark_summed(arrays, layers: Layers, camera: Camera, lens, parts) -> None:
+    """Set ``layers.summed``: a layer other than the sharp slab is summed where its level is
+    ``LAYERS.summed_level`` or coarser and its blur is wide against its Gaussians' own
+    footprints: the median over them of a part's blur (standard deviation, px) over the
+    footprint's (f sqrt(s2 s3) / z, the two largest scales) at least ``summed_ratio``.
+    A summed layer's weights are the shares of its Gaussians that sharp views see; spread
+    over the whole footprint, the share is right only where the blur is wider than the
+    part of the footprint that is seen (docs/maths.md, "Gaussian scenes", item 2)."""
+    view = view_matrix(camera)
+    z = np.asarray(arrays.positions, np.float64) @ view[2, :3] + view[2, 3]
+    coc_k, inv_focus = lens.coc_coefficients(camera)
+    fx = intrinsics(camera)[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        blur = parts.rho * math.sqrt(blur_variance(lens)) * coc_k * np.abs(1.0 / z - inv_focus)
+        s = np.sort(np.asarray(arrays.scales, np.float64), axis=1)
+        ratio = blur * z / (fx * np.sqrt(s[:, 1] * s[:, 2]))
+    summed = np.zeros(len(layers.scales), np.bool_)
+    for j, level in enumerate(layers.levels):
+        a, b = layers.spans[j]
+        if j != layers.sharp and level >= LAYERS.summed_level and b > a:
+            summed[j] = np.median(ratio[a:b]) >= LAYERS.summed_ratio
+    layers.summed = summed
 
 
 def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
@@ -185,9 +229,11 @@ def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
     coc_k, inv_focus = lens.coc_coefficients(camera)
     with np.errstate(divide="ignore"):
         coc = coc_k * np.abs(1.0 / z - inv_focus)
-    key, scales = layer_keys(z, coc, inv_focus, parts.rho * math.sqrt(blur_variance(lens)),
-                             LAYERS.sharp_coc, LAYERS.alpha, LAYERS.max_level)
-    sharp = LAYERS.max_level + 1
+    key, scales, levels = layer_keys(z, coc, inv_focus,
+                                     parts.rho * math.sqrt(blur_variance(lens)),
+                                     LAYERS.sharp_coc, LAYERS.alpha, LAYERS.max_level,
+                                     LAYERS.split_level)
+    sharp = (len(scales) - 1) // 2
     # the keys grow with depth: sorted nearest first they run in order, and moving the
     # sharp slab to the front keeps every layer a run
     by_depth = np.argsort(z, kind="stable")
@@ -200,7 +246,36 @@ def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
         if j != sharp:
             spans[j] = start, start + counts[j]
             start += counts[j]
-    return Layers(order=order, spans=spans, scales=scales, sharp=sharp)
+    return Layers(order=order, spans=spans, scales=scales, levels=levels,
+                  summed=np.zeros(len(scales), np.bool_), sharp=sharp)
+
+
+def summed_layers(layers: Layers) -> list[int]:
+    """The layers (their indices in ``layers``, with any Gaussian) whose Gaussians are
+    summed, not blended (``LAYERS.summed_level``; docs/maths.md, "Gaussian scenes", item 2):
+    those of level ``summed_level`` or coarser on either side of the focus."""
+    return [int(j) for j in np.flatnonzero(layers.summed)]
+
+
+def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
+                 settings: RenderSettings) -> np.ndarray:
+    """(N,) float32: each Gaussian's weight in its summed layer (``summed_layers``), 1 in the
+    others. A summed layer's blurred footprints are added, not blended, each weighted by the
+    share of it that sharp views of its layer alone see (its largest ``seen_share`` over the
+    lens centre and ``LAYERS.share_views`` points at ``share_radius`` of the lens's radius,
+    ``lens_visibility_by_shifts`` with raw shares): a stack of overlapping Gaussians then
+    adds up to the coverage of its front, where blended one over another their blurred
+    footprints compound it (docs/maths.md, "Gaussian scenes", item 2)."""
+    share = np.ones(len(scene), np.float32)
+    for j in summed_layers(layers):
+        a, b = layers.spans[j]
+        sub = GaussianArrays(positions=scene.positions[a:b], scales=scene.scales[a:b],
+                             rotations=scene.rotations[a:b], opacity=scene.opacity[a:b],
+                             sh=scene.sh[a:b], level=scene.level[a:b])
+        share[a:b] = lens_visibility_by_shifts(
+            sub, camera, lens, settings, views=LAYERS.share_views, scale=LAYERS.share_scale,
+            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=True)
+    return share
 
 
 def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, parts,
@@ -291,7 +366,9 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
         cameras[j, [P_COC_K, P_INV_FOCUS]] = coc_coefficients(cam, jlens, settings)
         cameras[j, P_BLUR_VARIANCE] = blur_variance(jlens)
     # the images: the sharp slab, then each part's other layers (a coarse one with a pixel
-    # of margin, so that bilinear sampling never leaves it); each part's list front to back
+    # of margin, so that bilinear sampling never leaves it; a summed one flagged); each
+    # part's list front to back
+    summed = set(summed_layers(layers))
     images = [] if n_sharp == 0 else [(w, h, 1, 0, 0, n_sharp)]
     part_layers = np.full((k, len(layers.scales)), -1, np.int64)
     for p in range(k):
@@ -306,7 +383,7 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
                 margin = 0 if scale == 1 else 1
                 r0 = a + p * n_rest
                 images.append((-(-w // scale) + 2 * margin, -(-h // scale) + 2 * margin, scale,
-                               margin, r0, r0 + b - a))
+                               margin, r0, r0 + b - a, j in summed))
                 part_layers[p, col] = len(images) - 1
             col += 1
     return (np.stack([view_matrix(job[0]) for job in jobs]),
@@ -431,7 +508,7 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px).
     radius: the rim views at this fraction of the lens's radius; eps2d: their low-pass
     (``LAYERS.visibility_eps2d`` where None); raw: each Gaussian's largest ``seen_share``
-    over the views, not ``lens_share`` of it (bench/gauss_coverage.py's weights)."""
+    over the views, not ``lens_share`` of it (``layer_shares``' weights)."""
     views = LAYERS.visibility_views if views is None else views
     if scale is None:
         scale = visibility_scale_for(scene.positions, camera, lens, settings)
@@ -466,12 +543,8 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     composite_images(view_rows, view_boxes, offsets, ids, tile_image, table,
                      np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
                      np.empty(n_px, np.float32), seen)
-    if raw:
-        share = np.empty(m * n, np.float32)
-        seen_shares(view_rows, view_visible, seen.sum(axis=0), share)
-        return share.reshape(m, n).max(axis=0)
     best = np.empty(n, np.float32)
-    best_view_shares(view_rows, view_visible, seen, n, best)
+    (raw_view_shares if raw else best_view_shares)(view_rows, view_visible, seen, n, best)
     return best
 
 

@@ -59,11 +59,12 @@ from numba import cuda
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, coc_coefficients, lens_parts
 from ..gauss.composite import (MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
-                               best_view_share, blend, finish_pixel, gaussian_alpha,
-                               lens_share, seen_share, start_pixel)
+                               add, add_linear_part, best_view_share, blend, finish_linear_pixel,
+                               finish_pixel, finish_sum, gaussian_alpha, lens_share,
+                               part_linear, raw_view_share, seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
-                            IM_TILE0, IM_WIDTH, image_table, layer_listed_over, layer_sample,
-                            mark_live, over_pixel, project_layer_row)
+                            IM_SUM, IM_TILE0, IM_WIDTH, image_table, layer_listed_over,
+                            layer_sample, mark_live, over_pixel, project_layer_row)
 from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_OPACITY,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian,
                              project_shifted_view, view_matrix)
@@ -71,7 +72,7 @@ from ..gaussians import Gaussians
 from . import cpu_gauss
 from . import cuda as surfel_cuda
 from .cpu_gauss import (BLURS, blur_variance, in_layers, layer_plan, lod_cut, shifted_views,
-                        visibility_cameras)
+                        summed_layers, visibility_cameras)
 from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
                    exclusive_scan)
 
@@ -80,6 +81,12 @@ _project_shifted_view = device_twin(project_shifted_view)
 _project_layer_row = device_twin(project_layer_row)
 _gaussian_alpha = device_twin(gaussian_alpha)
 _blend = device_twin(blend)
+_add = device_twin(add)
+_finish_sum = device_twin(finish_sum)
+_part_linear = device_twin(part_linear)
+_add_linear_part = device_twin(add_linear_part)
+_finish_linear_pixel = device_twin(finish_linear_pixel)
+_raw_view_share = device_twin(raw_view_share)
 _start_pixel = device_twin(start_pixel)
 _seen_share = device_twin(seen_share)
 _lens_share = device_twin(lens_share)
@@ -197,6 +204,7 @@ def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, tran
     py = (local // n_tx) * TILE + tid // TILE
     px = (local % n_tx) * TILE + tid % TILE
     inside = py < height and px < width
+    summed = images[i, IM_SUM] != 0
     _start_pixel(state, 0)
     done = not inside
     lo = offsets[t]
@@ -223,13 +231,18 @@ def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, tran
                                     batch[b, F_CUT], px, py)
             if alpha == 0.0:
                 continue
-            w = _blend(state, 0, alpha, batch, b)
+            if summed:
+                w = _add(state, 0, alpha, batch, b)
+            else:
+                w = _blend(state, 0, alpha, batch, b)
             if w < 0.0:
                 done = True
             elif track:
                 cuda.atomic.add(seen, gid[b], w)
         cuda.syncthreads()
     if inside:
+        if summed:
+            _finish_sum(state, 0)
         q = images[i, IM_PIXEL0] + py * width + px
         color[q, 0] = state[0, S_R]
         color[q, 1] = state[0, S_G]
@@ -252,8 +265,10 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_c
     """One thread per pixel of the frame: ``gauss.layers.combine_layers``, each part's layers
     joined front to back (``over_pixel``), a layer none of whose tiles that the pixel's
     sample reads lists a Gaussian skipped (it holds nothing there: ``layer_listed_over``),
-    then the frame (``finish_pixel``)."""
-    total = cuda.local.array((1, 4), numba.float64)  # r, g, b, T summed over the parts
+    each part over the background in linear light (``part_linear``), then the frame
+    (``finish_linear_pixel``)."""
+    total = cuda.local.array((1, 4), numba.float64)  # linear r, g, b and T, over the parts
+    part = cuda.local.array((1, 3), numba.float64)  # a part's colour, the trainer's space
     t_acc = cuda.local.array(1, numba.float64)
     d = cuda.local.array(1, numba.float64)
     h, w = out_trans.shape
@@ -267,6 +282,8 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_c
     d_min = math.inf
     k_parts = part_layers.shape[0]
     for k in range(k_parts):
+        for c in range(3):
+            part[0, c] = 0.0
         t_acc[0] = 1.0
         d[0] = math.inf
         for j in range(part_layers.shape[1]):
@@ -279,25 +296,37 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_c
                 row, ay = _layer_sample(y, inv, images[i, IM_MARGIN])
                 _over_pixel(images, i, color, trans, depth,
                             images[i, IM_PIXEL0] + row * images[i, IM_WIDTH] + col, ax, ay,
-                            total, t_acc, d, 0)
+                            part, t_acc, d, 0)
+        for c in range(3):
+            total[0, c] += _part_linear(part[0, c], t_acc[0], bg[c])
         total[0, 3] += t_acc[0]
         d_min = min(d_min, d[0])
     for c in range(3):
         out_color[y, x, c] = total[0, c]
     out_trans[y, x] = total[0, 3]
     out_depth[y, x] = d_min
-    _finish_pixel(out_color, out_trans, y, x, 1.0 / k_parts, bg, image)
+    _finish_linear_pixel(out_color, out_trans, y, x, 1.0 / k_parts, image)
 
 
 @cuda.jit
-def _accumulate(color, trans, depth, part_color, part_trans, part_depth):
-    """One lens part's pass into the sums: colour and transmittance added, depth the nearest."""
+def _accumulate(color, trans, depth, part_color, part_trans, part_depth, bg):
+    """One thread per pixel: one lens part's pass into the sums, over the background in
+    linear light (``add_linear_part``), depth the nearest."""
     i = cuda.grid(1)
-    if i < trans.shape[0]:
-        for c in range(3):
-            color[i, c] += part_color[i, c]
-        trans[i] += part_trans[i]
-        depth[i] = min(depth[i], part_depth[i])
+    w = trans.shape[1]
+    if i < trans.shape[0] * w:
+        y, x = i // w, i % w
+        _add_linear_part(part_color, part_trans, y, x, bg, color, trans)
+        depth[y, x] = min(depth[y, x], part_depth[y, x])
+
+
+@cuda.jit
+def _finish_linear(color, trans, scale, out):
+    """One thread per pixel: the parts' linear sums to their mean, linear RGBA."""
+    i = cuda.grid(1)
+    w = trans.shape[1]
+    if i < trans.shape[0] * w:
+        _finish_linear_pixel(color, trans, i // w, i % w, scale, out)
 
 
 @cuda.jit
@@ -329,6 +358,14 @@ def _best_view_shares(rows, visible, seen, n, best):
     i = cuda.grid(1)
     if i < n:
         best[i] = _best_view_share(rows, visible, seen, n, i)
+
+
+@cuda.jit
+def _raw_view_shares(rows, visible, seen, n, out):
+    """One thread per Gaussian: ``gauss.composite.raw_view_shares`` (seen: (1, V n))."""
+    i = cuda.grid(1)
+    if i < n:
+        out[i] = _raw_view_share(rows, visible, seen, n, i)
 
 
 # -- the stages on the host -------------------------------------------------------------------
@@ -489,11 +526,16 @@ def draw_cuda(arrays: dict, camera, lens, settings, blur: str = "ours", share=No
 
 
 def draw_passes_cuda(arrays: dict, camera, lens, parts, settings, blur: str, share):
-    """``cpu_gauss.draw_passes`` on the GPU: one pass (parts None), or each part drawn whole
-    and summed: (color, transmittance, depth, stats)."""
-    if parts is None:
-        return draw_cuda(arrays, camera, lens, settings, blur, share)
+    """``cpu_gauss.draw_passes`` on the GPU: one pass (parts None), or each part drawn whole,
+    over the background and averaged in linear light: (image (H, W, 4) linear RGBA, depth,
+    stats), device buffers."""
     h, w = camera.height, camera.width
+    image = _WS.get("g.image", (h, w, 4), np.float32)
+    bg = _upload(linear_to_srgb(np.asarray(settings.background, np.float64)))
+    if parts is None:
+        color, trans, depth, counts = draw_cuda(arrays, camera, lens, settings, blur, share)
+        _finish[_blocks(h * w), THREADS](color, trans, 1.0, bg, image)
+        return image, depth, counts
     color = _WS.get("g.sum.color", (h, w, 3), np.float32)
     trans = _WS.get("g.sum.trans", (h, w), np.float32)
     depth = _WS.get("g.sum.depth", (h, w), np.float32)
@@ -505,10 +547,9 @@ def draw_passes_cuda(arrays: dict, camera, lens, parts, settings, blur: str, sha
         c, t, d, st = draw_cuda(arrays, cam, parts.residual, settings, blur, share)
         for key in counts:  # summed over the parts, as the CPU's stats are
             counts[key] += st[key]
-        _accumulate[_blocks(h * w), THREADS](color.reshape(h * w, 3), trans.reshape(h * w),
-                                             depth.reshape(h * w), c.reshape(h * w, 3),
-                                             t.reshape(h * w), d.reshape(h * w))
-    return color, trans, depth, counts
+        _accumulate[_blocks(h * w), THREADS](color, trans, depth, c, t, d, bg)
+    _finish_linear[_blocks(h * w), THREADS](color, trans, 1.0 / len(parts.cameras), image)
+    return image, depth, counts
 
 
 def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, scale: int = 2):
@@ -531,16 +572,38 @@ def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, s
 # -- the lens in layers (gauss/layers.py) ------------------------------------------------
 
 
+def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens, settings):
+    """(N,) float32 on the GPU: ``cpu_gauss.layer_shares``, each summed layer's weights from
+    its own views (``lens_visibility_by_shifts_cuda`` on its run of the arrays)."""
+    n = len(positions)
+    share = _WS.get("g.layer_share", (n,), np.float32)
+    _fill[_blocks(n), THREADS](share, 1.0)
+    ls = cpu_gauss.LAYERS
+    for j in summed_layers(layers):
+        a, b = (int(v) for v in layers.spans[j])
+        sub = {key: value[a:b] for key, value in arrays.items()}
+        lens_visibility_by_shifts_cuda(sub, positions[a:b], camera, lens, settings,
+                                       ls.share_scale, views=ls.share_views,
+                                       radius=ls.share_radius, eps2d=ls.share_eps2d, raw=True,
+                                       out=share[a:b])
+    return share
+
+
 def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, lens,
-                                   settings, scale: int | None = None) -> object:
+                                   settings, scale: int | None = None, *,
+                                   views: int | None = None, radius: float = 1.0,
+                                   eps2d: float | None = None, raw: bool = False,
+                                   out=None) -> object:
     """(N,) float32 on the GPU: ``cpu_gauss.lens_visibility_by_shifts`` (positions: the
-    frame's Gaussians' (N, 3), on the host), from the same views: one projection moved to
-    each view, every view's tiles composited in one launch, seen sums by atomics."""
+    frame's Gaussians' (N, 3), on the host; the same keywords), from the same views: one
+    projection moved to each view, every view's tiles composited in one launch, seen sums
+    by atomics. out: a device array (N,) to write the shares into, else a workspace's."""
     layers = cpu_gauss.LAYERS
     small, margin, shifts, inv_focus, near, view = shifted_views(
-        positions, camera, lens, settings, layers.visibility_views,
+        positions, camera, lens, settings, layers.visibility_views if views is None else views,
         cpu_gauss.visibility_scale_for(positions, camera, lens, settings) if scale is None
         else scale)
+    shifts = shifts * radius
     w, h = small.width, small.height
     n, m = len(positions), len(shifts)
     fx, fy, cx, cy = intrinsics(small)
@@ -550,7 +613,7 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
     view_rows = _WS.get("g.view_rows", (m * n, N_FIELDS), np.float32)
     view_boxes = _WS.get("g.view_boxes", (m * n, 4), np.int32)
     view_visible = _WS.get("g.view_visible", (m * n,), np.bool_)
-    best = _WS.get("g.best", (n,), np.float32)
+    best = _WS.get("g.best", (n,), np.float32) if out is None else out
     if not n:
         return best
     # (no colour is needed: the SH's constant term alone is the cheapest)
@@ -558,7 +621,8 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
         arrays["positions"], arrays["scales"], arrays["rotations"], arrays["opacity"],
         arrays["sh"][:, :1], _upload(view), _upload(np.asarray(small.eye, np.float64)), fx, fy,
         cx + margin, cy + margin, w + 2 * margin, h + 2 * margin, near, 1e10,
-        layers.visibility_eps2d, bool(settings.gaussian_antialiased), margin, _upload(shifts),
+        layers.visibility_eps2d if eps2d is None else eps2d,
+        bool(settings.gaussian_antialiased), margin, _upload(shifts),
         inv_focus, _WS.get("g.no_share", (0,), np.float32), rows, boxes, visible, view_rows,
         view_boxes, view_visible)
     images = device_images(image_table([(w, h, 1, 0, v * n, (v + 1) * n) for v in range(m)]))
@@ -568,8 +632,8 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
     no_tile = _WS.get("g.no_tile", (images.n_tiles,), np.bool_)  # only seen is read
     _fill[_blocks(images.n_tiles), THREADS](no_tile, False)
     composite_cuda(view_rows, view_boxes, offsets, keys, images, "g.small", seen, no_tile)
-    _best_view_shares[_blocks(n), THREADS](view_rows, view_visible, seen.reshape(1, m * n), n,
-                                           best)
+    (_raw_view_shares if raw else _best_view_shares)[_blocks(n), THREADS](
+        view_rows, view_visible, seen.reshape(1, m * n), n, best)
     return best
 
 
@@ -618,6 +682,7 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
         out_depth, image)
     stats = dict(zip(("tile_pairs", "splats_rendered", "fragments"), totals))
     stats["layers"] = len(table)
+    stats["summed_layers"] = len(summed_layers(layers))
     return image, out_depth, stats
 
 
@@ -643,7 +708,9 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     arrays = device_gaussians(scene)
     clock.mark("select_ms")
     share = None
-    if layered:
+    if layered and summed_layers(layers):
+        share = layer_shares_cuda(arrays, scene.positions, layers, camera, lens, settings)
+    elif layered:
         share = lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens, settings,
                                                vis_scale)
     elif blur == "ours" and blurred:
@@ -654,12 +721,8 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
         image, depth, counts = draw_layered_cuda(arrays, layers, camera, lens, parts, settings,
                                                  share)
     else:
-        color, trans, depth, counts = draw_passes_cuda(arrays, camera, lens, parts, settings,
-                                                       blur, share)
-        image = _WS.get("g.image", (h, w, 4), np.float32)
-        bg = _upload(linear_to_srgb(np.asarray(settings.background, np.float64)))
-        _finish[_blocks(h * w), THREADS](color, trans, 1.0 if parts is None else
-                                         1.0 / len(parts.cameras), bg, image)
+        image, depth, counts = draw_passes_cuda(arrays, camera, lens, parts, settings, blur,
+                                                share)
     clock.mark("draw_ms")
     image, depth = image.copy_to_host(), depth.copy_to_host()
     clock.mark("copy_ms")

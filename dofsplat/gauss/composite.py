@@ -112,6 +112,37 @@ def blend(state, p, alpha, rows, g):
     return w
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def add(state, p, alpha, rows, g):
+    """Row g's Gaussian, at this alpha, *added* to pixel p's state (a summed layer,
+    ``gauss/layers.py``: no order, no "over"): colour alpha c added and S_T, here 1 minus
+    the alpha summed, lowered by alpha (it may fall below 0: ``finish_sum`` clamps); the
+    depth where S_T first falls to 1/2. Returns alpha."""
+    t_before = state[p, S_T]
+    state[p, S_R] += alpha * rows[g, F_R]
+    state[p, S_G] += alpha * rows[g, F_G]
+    state[p, S_B] += alpha * rows[g, F_B]
+    next_trans = t_before - alpha
+    if next_trans <= MEDIAN_TRANSMITTANCE < t_before:
+        state[p, S_DEPTH] = rows[g, F_DEPTH]
+    state[p, S_T] = next_trans
+    return alpha
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def finish_sum(state, p):
+    """A summed pixel's coverage clamped at 1: where its alpha summed (1 - S_T) exceeds 1,
+    the colour is scaled by 1 / that sum (the mean colour of what was added, fully opaque)
+    and S_T is 0."""
+    total = 1.0 - state[p, S_T]
+    if total > 1.0:
+        inv = 1.0 / total
+        state[p, S_R] *= inv
+        state[p, S_G] *= inv
+        state[p, S_B] *= inv
+        state[p, S_T] = 0.0
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, transmittance,
                     depth, seen):
@@ -132,7 +163,7 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
         state = np.empty((tw * (ty1 - ty0), N_STATE), np.float64)
         done = np.empty(tw * (ty1 - ty0), np.bool_)
         blend_tile(rows, boxes, ids, offsets[t], offsets[t + 1], tx0, ty0, tx1, ty1, state,
-                   done, seen, tid)
+                   done, seen, tid, False)
         for py in range(ty0, ty1):
             for px in range(tx0, tx1):
                 p = (py - ty0) * tw + (px - tx0)
@@ -144,10 +175,12 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, tid):
+def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, tid,
+               summed):
     """One tile's pixels [tx0, tx1) x [ty0, ty1) blended front to back from its list
     ids[k0:k1] into state (a row per pixel, row by row; ``start_pixel`` first), done a flag
-    per pixel; seen: ``composite_tiles``'s (thread tid's row), or (0, 0).
+    per pixel; seen: ``composite_tiles``'s (thread tid's row), or (0, 0). summed: each
+    Gaussian added (``add``, then ``finish_sum``), not blended: no pixel is ever done.
 
     Gaussian by Gaussian, over the pixels of its box within the tile only (a tile's list
     holds many Gaussians that reach a few of its pixels); each pixel's blend is the one of
@@ -193,12 +226,16 @@ def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, 
                 alpha = gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py)
                 if alpha == 0.0:
                     continue
-                w = blend(state, p, alpha, rows, g)
+                w = add(state, p, alpha, rows, g) if summed else blend(state, p, alpha,
+                                                                        rows, g)
                 if w < 0.0:
                     done[p] = True
                     n_done += 1
                 elif track:
                     seen[tid, g] += w
+    if summed:
+        for p in range(n_px):
+            finish_sum(state, p)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -250,6 +287,13 @@ def best_view_share(rows, visible, seen, n, i):
     """Gaussian i's ``lens_share`` of its largest ``seen_share`` over the views
     (``best_view_shares``, which see): the per-Gaussian maths that the CUDA backend compiles
     as a device function too (its seen: one row, summed by atomics)."""
+    return lens_share(raw_view_share(rows, visible, seen, n, i))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def raw_view_share(rows, visible, seen, n, i):
+    """Gaussian i's largest ``seen_share`` over the stacked views of ``best_view_shares``
+    (which see), before ``lens_share``: the per-Gaussian maths of ``raw_view_shares``."""
     n_views = rows.shape[0] // max(n, 1)
     share = 0.0
     for v in range(n_views):
@@ -259,7 +303,15 @@ def best_view_share(rows, visible, seen, n, i):
             for t in range(seen.shape[0]):
                 total += seen[t, r]
             share = max(share, seen_share(rows, r, total))
-    return lens_share(share)
+    return share
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def raw_view_shares(rows, visible, seen, n, out):
+    """out[i] = ``raw_view_share`` of Gaussian i (``best_view_shares``'s arguments): a
+    summed layer's weights (``backends.cpu_gauss.layer_shares``)."""
+    for i in numba.prange(n):
+        out[i] = raw_view_share(rows, visible, seen, n, i)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -289,6 +341,50 @@ def finish_pixel(color, trans, y, x, scale, bg, out):
         v = color[y, x, c] * scale + t * bg[c]
         out[y, x, c] = srgb_value_to_linear(min(max(v, 0.0), 1.0))
     out[y, x, 3] = 1.0 - t
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def part_linear(value, t, bg):
+    """One channel of a lens part's pixel in linear light: its composite (value, of
+    transmittance t, the trainer's colour space) over the background bg (the same space),
+    clipped to [0, 1] and decoded, as ``finish_pixel``. The parts of the lens are averaged
+    so, as the lens reference averages its views (docs/maths.md, "Gaussian scenes")."""
+    return srgb_value_to_linear(min(max(value + t * bg, 0.0), 1.0))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def add_linear_part(color, trans, y, x, bg, out_color, out_trans):
+    """One lens part's pixel (color (H, W, 3), trans (H, W)) added in linear light
+    (``part_linear``) into out_color[y, x], its T into out_trans[y, x]."""
+    t = trans[y, x]
+    for c in range(3):
+        out_color[y, x, c] += part_linear(color[y, x, c], t, bg[c])
+    out_trans[y, x] += t
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def finish_linear_pixel(color, trans, y, x, scale, out):
+    """out[y, x] (RGBA): the sums of ``add_linear_part`` over K parts times scale = 1/K:
+    the linear colour and alpha 1 - T."""
+    for c in range(3):
+        out[y, x, c] = color[y, x, c] * scale
+    out[y, x, 3] = 1.0 - trans[y, x] * scale
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def add_linear_parts(color, trans, bg, out_color, out_trans):
+    """``add_linear_part`` over the image, a row per task."""
+    for y in numba.prange(trans.shape[0]):
+        for x in range(trans.shape[1]):
+            add_linear_part(color, trans, y, x, bg, out_color, out_trans)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def finish_linear_image(color, trans, scale, out):
+    """``finish_linear_pixel`` over the image, a row per task."""
+    for y in numba.prange(trans.shape[0]):
+        for x in range(trans.shape[1]):
+            finish_linear_pixel(color, trans, y, x, scale, out)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

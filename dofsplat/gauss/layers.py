@@ -19,8 +19,17 @@ then its finer ones, the sharp slab, then the far side's finest first (``layer_k
 What changes against drawing the part whole: a pixel's early stop (T <= 1e-4) applies
 within a layer only, and a coarse layer is sampled, not drawn, at full resolution.
 
-The sharp slab (C_r below ``sharp_coc``; none by default) is drawn once, from the lens
-centre with the whole lens's blur, instead of once per part.
+The sharp slab (C_r below ``sharp_coc``) is drawn once, from the lens centre with the whole
+lens's blur, instead of once per part.
+
+A blurred layer is *summed* (``IM_SUM``; which ones: ``backends.cpu_gauss.mark_summed``):
+its Gaussians' blurred footprints added, not blended, each weighted by the share of it that
+sharp views of its layer see (``cpu_gauss.layer_shares``), the pixel's coverage the sum
+clamped at 1 (``composite.add``, ``finish_sum``). Blended one "over" another, the blurred
+footprints of a surface's overlapping Gaussians no longer cover one another and the surface
+over-covers; their seen shares add up to its coverage (docs/maths.md, "Gaussian scenes",
+item 2). Each part is joined over the background and decoded before the parts are averaged
+(``composite.part_linear``): in linear light, as the lens reference averages its views.
 
 Every image of a frame, whatever its part, layer and resolution (and the lens visibility's
 views, ``cpu_gauss.lens_visibility_by_shifts``), is a row of one table (the ``IM_*``
@@ -38,44 +47,50 @@ import numpy as np
 from ..jit import numba
 from ..parallel import weyl_stride
 from .composite import (MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
-                        blend_tile, finish_pixel)
-from .project import BLUR_OURS, EPS2D, move_footprint, project_gaussian
+                        blend_tile, finish_linear_pixel, part_linear)
+from .project import BLUR_OURS, EPS2D, F_CUT, F_OPACITY, move_footprint, project_gaussian
 
-# the columns of an image table (int64, a row per image)
-IM_WIDTH, IM_HEIGHT, IM_SCALE, IM_MARGIN, IM_TILE0, IM_PIXEL0, IM_ROW0, IM_ROW1 = range(8)
-N_IM = 8
+# the columns of an image table (int64, a row per image); IM_SUM: 1 where the image's
+# Gaussians are added, not blended "over" (a summed layer, the module docstring)
+IM_WIDTH, IM_HEIGHT, IM_SCALE, IM_MARGIN, IM_TILE0, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SUM = range(9)
+N_IM = 9
 
 
 def image_table(images) -> np.ndarray:
-    """(I, N_IM) int64 from (width, height, scale, margin, row0, row1) per image: their tiles
-    and pixels numbered one image after another (``IM_TILE0``, ``IM_PIXEL0``)."""
+    """(I, N_IM) int64 from (width, height, scale, margin, row0, row1[, summed]) per image:
+    their tiles and pixels numbered one image after another (``IM_TILE0``, ``IM_PIXEL0``);
+    summed 0 where not given."""
     table = np.zeros((len(images), N_IM), np.int64)
     tile0 = pixel0 = 0
-    for i, (w, h, scale, margin, row0, row1) in enumerate(images):
-        table[i] = (w, h, scale, margin, tile0, pixel0, row0, row1)
+    for i, (w, h, scale, margin, row0, row1, *summed) in enumerate(images):
+        table[i] = (w, h, scale, margin, tile0, pixel0, row0, row1,
+                    int(summed[0]) if summed else 0)
         tile0 += -(-w // TILE) * -(-h // TILE)
         pixel0 += w * h
     return table
 
 
 def layer_keys(z: np.ndarray, coc: np.ndarray, inv_focus: float, sigma_per_coc: float,
-               sharp_coc: float, alpha: float, max_level: int):
-    """(key (N,) int64, scales (L,) int64): each Gaussian's layer, numbered front to back,
-    and each layer's scale (1/scale of the full resolution). z: (N,) depths, coc: (N,) the
-    whole lens's C_r(z), pixels; sigma_per_coc: a part's blur's standard deviation at C_r = 1
-    (rho sqrt(blur_variance)); the layer's scale is the largest power of 2 not above
-    sigma / alpha, at most 2^max_level; key max_level + 1 is the sharp slab (C_r below
-    sharp_coc), in front of it the near side's layers (coarsest first), behind it the far
-    side's (finest first). Keys are non-decreasing in z."""
+               sharp_coc: float, alpha: float, max_level: int, split_level: int | None = None):
+    """(key (N,) int64, scales (L,) int64, levels (L,) int64): each Gaussian's layer,
+    numbered front to back, and each layer's scale (1/scale of the full resolution) and
+    level. z: (N,) depths, coc: (N,) the whole lens's C_r(z), pixels; sigma_per_coc: a
+    part's blur's standard deviation at C_r = 1 (rho sqrt(blur_variance)); a Gaussian's
+    level is that of the largest power of 2 not above sigma / alpha, at most split_level
+    (max_level where None), its layer's scale that power, at most 2^max_level (the levels
+    past max_level are layers of their own at that scale); key split_level + 1 is the sharp
+    slab (C_r below sharp_coc), in front of it the near side's layers (coarsest first),
+    behind it the far side's (finest first). Keys are non-decreasing in z."""
+    split = max_level if split_level is None else max(split_level, max_level)
     sigma = sigma_per_coc * coc
     with np.errstate(divide="ignore"):
         level = np.floor(np.log2(np.maximum(sigma / alpha, 1.0)))
-    level = np.minimum(level, max_level).astype(np.int64)
-    sharp = max_level + 1
-    key = np.where(z < 1.0 / inv_focus, max_level - level, sharp + 1 + level)
+    level = np.minimum(level, split).astype(np.int64)
+    sharp = split + 1
+    key = np.where(z < 1.0 / inv_focus, split - level, sharp + 1 + level)
     key[coc < sharp_coc] = sharp
-    levels = np.r_[np.arange(max_level, -1, -1), 0, np.arange(max_level + 1)]
-    return key, (2 ** levels).astype(np.int64)
+    levels = np.r_[np.arange(split, -1, -1), 0, np.arange(split + 1)]
+    return key, (2 ** np.minimum(levels, max_level)).astype(np.int64), levels.astype(np.int64)
 
 
 # a projection of ``project_layers``: the camera's intrinsics and image, the lens's blur
@@ -92,8 +107,9 @@ def project_layers(positions, scales, rotations, opacity, sh, share, views, camp
     Projection j (``project_gaussian`` with our blur): views[j] (4, 4) world to camera,
     campos[j] (3,), cameras[j] (the ``P_*`` columns), of the Gaussians spans[j, 0] ..
     spans[j, 1] into rows, boxes and visible from row spans[j, 2] (the projections' rows
-    one run after another, covering them all). share: (N,) the lens visibility, or (0,).
-    Then row r is moved onto images[row_image[r]] where that image's scale is not 1
+    one run after another, covering them all). share: (N,) the lens visibility, or (0,);
+    on a summed image (``IM_SUM``) each Gaussian's weight instead: its opacity and cut
+    times it, after the blur (a Gaussian of weight 0 is not drawn). Then row r is moved onto images[row_image[r]] where that image's scale is not 1
     (``move_footprint``: the same footprint in its pixels). Each row is
     ``project_layer_row``'s."""
     for r in numba.prange(rows.shape[0]):
@@ -112,13 +128,22 @@ def project_layer_row(r, positions, scales, rotations, opacity, sh, share, views
     a, b, r0 = spans[j, 0], spans[j, 1], spans[j, 2]
     r1 = r0 + b - a
     cam = cameras[j]
+    im = row_image[r]
+    weighted = share.shape[0] > 0 and images[im, IM_SUM] != 0
     project_gaussian(r - r0, positions[a:b], scales[a:b], rotations[a:b], opacity[a:b],
                      sh[a:b], views[j], campos[j], cam[P_FX], cam[P_FY], cam[P_CX],
                      cam[P_CY], int(cam[P_WIDTH]), int(cam[P_HEIGHT]), cam[P_NEAR], 1e10,
                      EPS2D, antialiased, BLUR_OURS, cam[P_COC_K], cam[P_INV_FOCUS],
-                     cam[P_BLUR_VARIANCE], share[a:b] if share.shape[0] > 0 else share,
+                     cam[P_BLUR_VARIANCE],
+                     share[a:a] if weighted or share.shape[0] == 0 else share[a:b],
                      rows[r0:r1], boxes[r0:r1], visible[r0:r1])
-    im = row_image[r]
+    if weighted and visible[r]:
+        weight = share[a + r - r0]
+        if weight > 0.0:
+            rows[r, F_OPACITY] *= weight
+            rows[r, F_CUT] *= weight
+        else:
+            visible[r] = False
     scale = images[im, IM_SCALE]
     if scale != 1:
         move_footprint(r, r, rows, visible, rows, boxes, visible, 0.0, 0.0, 0.0,
@@ -239,7 +264,7 @@ def composite_images(rows, boxes, offsets, ids, tile_image, images, live, color,
         state = np.empty((tw * (ty1 - ty0), N_STATE), np.float64)
         done = np.empty(tw * (ty1 - ty0), np.bool_)
         blend_tile(rows, boxes, ids, offsets[t], offsets[t + 1], tx0, ty0, tx1, ty1, state,
-                   done, seen, tid)
+                   done, seen, tid, images[i, IM_SUM] != 0)
         for py in range(ty0, ty1):
             for px in range(tx0, tx1):
                 p = (py - ty0) * tw + (px - tx0)
@@ -359,9 +384,10 @@ def over_pixel(images, i, color, transmittance, depth, q, ax, ay, total, t_acc, 
 def combine_layers(images, offsets, part_layers, color, transmittance, depth, background,
                    out_color, out_trans, out_depth, image):
     """Each part's layers joined front to back ("over", the module docstring) at every
-    full-resolution pixel and summed over the parts into out_color (H, W, 3) and out_trans
-    (H, W) float32, then the frame: image (H, W, 4) float32, ``finish_pixel`` of their mean
-    over background (3,) (the trainer's colour space). out_depth (H, W) float32: the least
+    full-resolution pixel, over background (3,) (the trainer's colour space) and decoded
+    (``part_linear``), summed over the parts into out_color (H, W, 3) (linear) and out_trans
+    (H, W) float32, then the frame: image (H, W, 4) float32, their mean
+    (``finish_linear_pixel``). out_depth (H, W) float32: the least
     over the parts of the depth at which a part's transmittance first falls to 1/2 (that
     layer's median depth, or the next layer's behind it where that layer's own is none).
     part_layers: (K, L) int64, each part's images front to back, -1 after the last;
@@ -381,13 +407,15 @@ def combine_layers(images, offsets, part_layers, color, transmittance, depth, ba
         y1 = min(y0 + TILE, h)
         tw = x1 - x0
         n_px = tw * (y1 - y0)
-        total = np.zeros((n_px, 4))  # r, g, b, T summed over the parts
+        total = np.zeros((n_px, 4))  # linear r, g, b and T, summed over the parts
+        part = np.empty((n_px, 3))  # a part's colour, the trainer's space
         d_min = np.full(n_px, math.inf)
         t_acc = np.empty(n_px)
         d = np.empty(n_px)
         cols = np.empty(TILE, np.int64)
         fracs = np.empty(TILE)
         for k in range(k_parts):
+            part[:] = 0.0
             t_acc[:] = 1.0
             d[:] = math.inf
             n_done = 0
@@ -397,8 +425,10 @@ def combine_layers(images, offsets, part_layers, color, transmittance, depth, ba
                     break
                 if layer_listed_over(images, offsets, i, x0, y0, x1, y1):
                     n_done += over_layer(images, i, color, transmittance, depth, x0, y0, x1,
-                                         y1, cols, fracs, total, t_acc, d)
+                                         y1, cols, fracs, part, t_acc, d)
             for p in range(n_px):
+                for c in range(3):
+                    total[p, c] += part_linear(part[p, c], t_acc[p], background[c])
                 total[p, 3] += t_acc[p]
                 d_min[p] = min(d_min[p], d[p])
         for p in range(n_px):
@@ -408,4 +438,4 @@ def combine_layers(images, offsets, part_layers, color, transmittance, depth, ba
                 out_color[y, x, c] = total[p, c]
             out_trans[y, x] = total[p, 3]
             out_depth[y, x] = d_min[p]
-            finish_pixel(out_color, out_trans, y, x, 1.0 / k_parts, background, image)
+            finish_linear_pixel(out_color, out_trans, y, x, 1.0 / k_parts, image)

@@ -137,6 +137,30 @@ def composite(footprints, width, height):
     return colour, trans
 
 
+def composite_summed(footprints, width, height, weights):
+    """(colour (H, W, 3), transmittance (H, W)) of projected footprints added, each times
+    its weight (a summed layer: opacity and cut both scaled, then the trainers' skip and
+    clamp), every pixel's coverage clamped at 1 (its colour then divided by the coverage)."""
+    colour = np.zeros((height, width, 3))
+    cover = np.zeros((height, width))
+    for (mean, _, conic, o, cut, rgb), w in zip(footprints, weights):
+        o, cut = o * w, cut * w
+        for py in range(height):
+            for px in range(width):
+                dv = mean - (px + 0.5, py + 0.5)
+                s = 0.5 * dv @ conic @ dv
+                if s < 0:
+                    continue
+                alpha = min(MAX_ALPHA, o * math.exp(-s))
+                if alpha < cut:
+                    continue
+                colour[py, px] += alpha * rgb
+                cover[py, px] += alpha
+    over = cover > 1.0
+    colour[over] /= cover[over][:, None]
+    return colour, 1.0 - np.minimum(cover, 1.0)
+
+
 def select_cut(tree, view, fx, near, coc_k, inv_focus, blur_variance, fraction) -> np.ndarray:
     """``gauss.lod.select_cut``, level by level with whole-array numpy: a level's candidates
     (ascending) that stop (in front of the near plane, size^2 <= fraction blur_variance
