@@ -72,6 +72,7 @@ class LayerSettings:
     share_radius: float = 0.7  # ... at this fraction of the lens's radius ...
     share_scale: int = 4  # ... at 1/this the resolution ...
     share_eps2d: float = 0.04  # ... with this low-pass, px^2 of their pixels
+    share_floor: float = 0.03  # a summed Gaussian whose weight is below this is not drawn (guitar and playbot at 10 and 35 px: 0.03 drew 12-24 % fewer Gaussians, 6-9 % less time, -0.02..+0.41 dB; 0.01, 0.003 between)
 
 
 LAYERS = LayerSettings()
@@ -274,7 +275,8 @@ def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
                              sh=scene.sh[a:b], level=scene.level[a:b])
         share[a:b] = lens_visibility_by_shifts(
             sub, camera, lens, settings, views=LAYERS.share_views, scale=LAYERS.share_scale,
-            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=True)
+            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=True,
+            floor=LAYERS.share_floor)
     return share
 
 
@@ -495,7 +497,7 @@ def seen_in_view(scene, camera: Camera, settings: RenderSettings, eps2d: float =
 def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSettings,
                               views: int | None = None, scale: int | None = None, *,
                               radius: float = 1.0, eps2d: float | None = None,
-                              raw: bool = False) -> np.ndarray:
+                              raw: bool = False, floor: float = 0.0) -> np.ndarray:
     """(N,) float32 in [0, 1]: ``lens_visibility``'s shares, from one projection (views,
     scale: ``LAYERS.visibility_views`` and ``visibility_scale`` where None). The views from
     the lens's rim differ from the centre's by a shear (``lens_camera``: a point at depth z
@@ -508,7 +510,8 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px).
     radius: the rim views at this fraction of the lens's radius; eps2d: their low-pass
     (``LAYERS.visibility_eps2d`` where None); raw: each Gaussian's largest ``seen_share``
-    over the views, not ``lens_share`` of it (``layer_shares``' weights)."""
+    over the views, not ``lens_share`` of it (``layer_shares``' weights), 0 where below
+    floor."""
     views = LAYERS.visibility_views if views is None else views
     if scale is None:
         scale = visibility_scale_for(scene.positions, camera, lens, settings)
@@ -544,7 +547,10 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
                      np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
                      np.empty(n_px, np.float32), seen)
     best = np.empty(n, np.float32)
-    (raw_view_shares if raw else best_view_shares)(view_rows, view_visible, seen, n, best)
+    if raw:
+        raw_view_shares(view_rows, view_visible, seen, n, floor, best)
+    else:
+        best_view_shares(view_rows, view_visible, seen, n, best)
     return best
 
 

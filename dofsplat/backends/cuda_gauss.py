@@ -60,7 +60,7 @@ from ..colors import linear_to_srgb
 from ..frame import RenderResult, coc_coefficients, lens_parts
 from ..gauss.composite import (MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
                                add, add_linear_part, best_view_share, blend, finish_linear_pixel,
-                               finish_pixel, finish_sum, gaussian_alpha, lens_share,
+                               finish_pixel, finish_sum, floored, gaussian_alpha, lens_share,
                                part_linear, raw_view_share, seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
                             IM_SUM, IM_TILE0, IM_WIDTH, image_table, layer_listed_over,
@@ -87,6 +87,7 @@ _part_linear = device_twin(part_linear)
 _add_linear_part = device_twin(add_linear_part)
 _finish_linear_pixel = device_twin(finish_linear_pixel)
 _raw_view_share = device_twin(raw_view_share)
+_floored = device_twin(floored)
 _start_pixel = device_twin(start_pixel)
 _seen_share = device_twin(seen_share)
 _lens_share = device_twin(lens_share)
@@ -361,11 +362,11 @@ def _best_view_shares(rows, visible, seen, n, best):
 
 
 @cuda.jit
-def _raw_view_shares(rows, visible, seen, n, out):
+def _raw_view_shares(rows, visible, seen, n, floor, out):
     """One thread per Gaussian: ``gauss.composite.raw_view_shares`` (seen: (1, V n))."""
     i = cuda.grid(1)
     if i < n:
-        out[i] = _raw_view_share(rows, visible, seen, n, i)
+        out[i] = _floored(_raw_view_share(rows, visible, seen, n, i), floor)
 
 
 # -- the stages on the host -------------------------------------------------------------------
@@ -585,7 +586,7 @@ def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens,
         lens_visibility_by_shifts_cuda(sub, positions[a:b], camera, lens, settings,
                                        ls.share_scale, views=ls.share_views,
                                        radius=ls.share_radius, eps2d=ls.share_eps2d, raw=True,
-                                       out=share[a:b])
+                                       floor=ls.share_floor, out=share[a:b])
     return share
 
 
@@ -593,7 +594,7 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
                                    settings, scale: int | None = None, *,
                                    views: int | None = None, radius: float = 1.0,
                                    eps2d: float | None = None, raw: bool = False,
-                                   out=None) -> object:
+                                   floor: float = 0.0, out=None) -> object:
     """(N,) float32 on the GPU: ``cpu_gauss.lens_visibility_by_shifts`` (positions: the
     frame's Gaussians' (N, 3), on the host; the same keywords), from the same views: one
     projection moved to each view, every view's tiles composited in one launch, seen sums
@@ -632,8 +633,12 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
     no_tile = _WS.get("g.no_tile", (images.n_tiles,), np.bool_)  # only seen is read
     _fill[_blocks(images.n_tiles), THREADS](no_tile, False)
     composite_cuda(view_rows, view_boxes, offsets, keys, images, "g.small", seen, no_tile)
-    (_raw_view_shares if raw else _best_view_shares)[_blocks(n), THREADS](
-        view_rows, view_visible, seen.reshape(1, m * n), n, best)
+    if raw:
+        _raw_view_shares[_blocks(n), THREADS](view_rows, view_visible, seen.reshape(1, m * n),
+                                              n, floor, best)
+    else:
+        _best_view_shares[_blocks(n), THREADS](view_rows, view_visible,
+                                               seen.reshape(1, m * n), n, best)
     return best
 
 

@@ -307,11 +307,17 @@ def raw_view_share(rows, visible, seen, n, i):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def raw_view_shares(rows, visible, seen, n, out):
-    """out[i] = ``raw_view_share`` of Gaussian i (``best_view_shares``'s arguments): a
-    summed layer's weights (``backends.cpu_gauss.layer_shares``)."""
+def raw_view_shares(rows, visible, seen, n, floor, out):
+    """out[i] = ``raw_view_share`` of Gaussian i (``best_view_shares``'s arguments), 0 where
+    below floor: a summed layer's weights (``backends.cpu_gauss.layer_shares``)."""
     for i in numba.prange(n):
-        out[i] = raw_view_share(rows, visible, seen, n, i)
+        out[i] = floored(raw_view_share(rows, visible, seen, n, i), floor)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def floored(share, floor):
+    """share, or 0 where it is below floor (a Gaussian that is not drawn)."""
+    return share if share >= floor else 0.0
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
