@@ -478,6 +478,7 @@ def test_layers_never_read_an_unwritten_tile():
     from dofsplat.backends import cpu_gauss as cg
     from dofsplat.colors import linear_to_srgb
     from dofsplat.frame import lens_parts
+    from dofsplat.gauss.composite import DECODE
     from dofsplat.gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_WIDTH, bin_images,
                                        combine_layers, composite_images, live_tiles)
 
@@ -506,7 +507,7 @@ def test_layers_never_read_an_unwritten_tile():
                          depth, cg.NO_SEEN)
         h, w = cam.height, cam.width
         image, out_depth = np.empty((h, w, 4), np.float32), np.empty((h, w), np.float32)
-        combine_layers(table, offsets, part_layers, color, trans, depth, bg,
+        combine_layers(table, offsets, part_layers, color, trans, depth, bg, DECODE,
                        np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32),
                        out_depth, image)
         frames.append((image, out_depth, np.isnan(trans).mean()))

@@ -28,7 +28,7 @@ from ..jit import numba
 from ..camera import Camera, effective_diameter, lens_camera
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
-from ..gauss.composite import (TILE, add_linear_parts, best_view_shares, bin_tiles,
+from ..gauss.composite import (DECODE, TILE, add_linear_parts, best_view_shares, bin_tiles,
                                composite_tiles, depth_order, finish_image,
                                finish_linear_image, finish_shares, keep_best_share,
                                raw_view_shares)
@@ -137,7 +137,7 @@ def draw_passes(scene, camera: Camera, lens, parts, settings: RenderSettings, bl
     stats = {"splats_rendered": 0, "fragments": 0}
     for cam in parts.cameras:
         c, t, d, s = draw_gaussians(scene, cam, parts.residual, settings, blur, share)
-        add_linear_parts(c, t, bg, color, trans)
+        add_linear_parts(c, t, bg, DECODE, color, trans)
         np.minimum(depth, d, out=depth)
         for key in stats:
             stats[key] += s[key]
@@ -317,7 +317,7 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     out_depth = np.empty((h, w), np.float32)
     image = np.empty((h, w, 4), np.float32)
     combine_layers(table, offsets, part_layers, color, trans,
-                   depth, linear_to_srgb(np.asarray(settings.background, np.float64)),
+                   depth, linear_to_srgb(np.asarray(settings.background, np.float64)), DECODE,
                    np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
                    image)
     stats["combine_ms"] = _ms(t)
@@ -455,7 +455,7 @@ def to_linear_rgba(color, trans, background, scale: float = 1.0) -> np.ndarray:
     holds the trainer's values. color and trans are scaled by ``scale`` first."""
     out = np.empty(trans.shape + (4,), np.float32)
     finish_image(color, trans, float(scale), linear_to_srgb(np.asarray(background, np.float64)),
-                 out)
+                 DECODE, out)
     return out
 
 

@@ -10,7 +10,7 @@ compiles the CPU's own functions again as device functions:
 
     project_gaussian (gauss/project.py, with sh_color), project_shifted_view and
     move_footprint; gaussian_alpha, blend, start_pixel, seen_share, lens_share,
-    best_view_share, finish_pixel with srgb_value_to_linear (gauss/composite.py);
+    best_view_share, finish_pixel with decode (gauss/composite.py);
     project_layer_row, mark_live, layer_listed_over, layer_sample, over_pixel
     (gauss/layers.py)
 
@@ -58,7 +58,7 @@ from numba import cuda
 
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, coc_coefficients, lens_parts
-from ..gauss.composite import (MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
+from ..gauss.composite import (DECODE, MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
                                add, add_linear_part, best_view_share, blend, finish_linear_pixel,
                                finish_pixel, finish_sum, floored, gaussian_alpha, lens_share,
                                part_linear, raw_view_share, seen_share, start_pixel)
@@ -261,7 +261,7 @@ def _live_tiles(offsets, images, tile_image, live):
 
 
 @cuda.jit
-def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_color,
+def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, lut, out_color,
                     out_trans, out_depth, image):
     """One thread per pixel of the frame: ``gauss.layers.combine_layers``, each part's layers
     joined front to back (``over_pixel``), a layer none of whose tiles that the pixel's
@@ -299,7 +299,7 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_c
                             images[i, IM_PIXEL0] + row * images[i, IM_WIDTH] + col, ax, ay,
                             part, t_acc, d, 0)
         for c in range(3):
-            total[0, c] += _part_linear(part[0, c], t_acc[0], bg[c])
+            total[0, c] += _part_linear(part[0, c], t_acc[0], bg[c], lut)
         total[0, 3] += t_acc[0]
         d_min = min(d_min, d[0])
     for c in range(3):
@@ -310,14 +310,14 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, out_c
 
 
 @cuda.jit
-def _accumulate(color, trans, depth, part_color, part_trans, part_depth, bg):
+def _accumulate(color, trans, depth, part_color, part_trans, part_depth, bg, lut):
     """One thread per pixel: one lens part's pass into the sums, over the background in
     linear light (``add_linear_part``), depth the nearest."""
     i = cuda.grid(1)
     w = trans.shape[1]
     if i < trans.shape[0] * w:
         y, x = i // w, i % w
-        _add_linear_part(part_color, part_trans, y, x, bg, color, trans)
+        _add_linear_part(part_color, part_trans, y, x, bg, lut, color, trans)
         depth[y, x] = min(depth[y, x], part_depth[y, x])
 
 
@@ -331,12 +331,12 @@ def _finish_linear(color, trans, scale, out):
 
 
 @cuda.jit
-def _finish(color, trans, scale, bg, out):
+def _finish(color, trans, scale, bg, lut, out):
     """One thread per pixel: the composite over the background, to linear RGBA."""
     i = cuda.grid(1)
     w = trans.shape[1]
     if i < trans.shape[0] * w:
-        _finish_pixel(color, trans, i // w, i % w, scale, bg, out)
+        _finish_pixel(color, trans, i // w, i % w, scale, bg, lut, out)
 
 
 @cuda.jit
@@ -370,6 +370,16 @@ def _raw_view_shares(rows, visible, seen, n, floor, out):
 
 
 # -- the stages on the host -------------------------------------------------------------------
+
+_DECODE = []  # composite.DECODE on the GPU, uploaded once
+
+
+def _decode():
+    """``gauss.composite.DECODE`` (the sRGB decoding table) on the GPU."""
+    if not _DECODE:
+        _DECODE.append(_upload(DECODE))
+    return _DECODE[0]
+
 
 
 def device_gaussians(scene) -> dict:
@@ -535,7 +545,7 @@ def draw_passes_cuda(arrays: dict, camera, lens, parts, settings, blur: str, sha
     bg = _upload(linear_to_srgb(np.asarray(settings.background, np.float64)))
     if parts is None:
         color, trans, depth, counts = draw_cuda(arrays, camera, lens, settings, blur, share)
-        _finish[_blocks(h * w), THREADS](color, trans, 1.0, bg, image)
+        _finish[_blocks(h * w), THREADS](color, trans, 1.0, bg, _decode(), image)
         return image, depth, counts
     color = _WS.get("g.sum.color", (h, w, 3), np.float32)
     trans = _WS.get("g.sum.trans", (h, w), np.float32)
@@ -548,7 +558,7 @@ def draw_passes_cuda(arrays: dict, camera, lens, parts, settings, blur: str, sha
         c, t, d, st = draw_cuda(arrays, cam, parts.residual, settings, blur, share)
         for key in counts:  # summed over the parts, as the CPU's stats are
             counts[key] += st[key]
-        _accumulate[_blocks(h * w), THREADS](color, trans, depth, c, t, d, bg)
+        _accumulate[_blocks(h * w), THREADS](color, trans, depth, c, t, d, bg, _decode())
     _finish_linear[_blocks(h * w), THREADS](color, trans, 1.0 / len(parts.cameras), image)
     return image, depth, counts
 
@@ -659,7 +669,7 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
         _fill[_blocks(h * w * 3), THREADS](color.reshape(h * w * 3), 0.0)
         _fill[_blocks(h * w), THREADS](trans.reshape(h * w), 1.0)
         _fill[_blocks(h * w), THREADS](out_depth.reshape(h * w), np.inf)
-        _finish[_blocks(h * w), THREADS](color, trans, 1.0, bg, image)
+        _finish[_blocks(h * w), THREADS](color, trans, 1.0, bg, _decode(), image)
         return image, out_depth, {"tile_pairs": 0, "splats_rendered": 0, "fragments": 0,
                                   "layers": 0}
     images = device_images(table)
@@ -682,7 +692,7 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
                                                   live)
     color, trans, depth = composite_cuda(rows, boxes, offsets, keys, images, live=live)
     _combine_layers[_blocks(h * w), THREADS](
-        images.table, offsets, _upload(part_layers), color, trans, depth, bg,
+        images.table, offsets, _upload(part_layers), color, trans, depth, bg, _decode(),
         _WS.get("g.out.color", (h, w, 3), np.float32), _WS.get("g.out.trans", (h, w), np.float32),
         out_depth, image)
     stats = dict(zip(("tile_pairs", "splats_rendered", "fragments"), totals))

@@ -382,10 +382,10 @@ def over_pixel(images, i, color, transmittance, depth, q, ax, ay, total, t_acc, 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def combine_layers(images, offsets, part_layers, color, transmittance, depth, background,
-                   out_color, out_trans, out_depth, image):
+                   lut, out_color, out_trans, out_depth, image):
     """Each part's layers joined front to back ("over", the module docstring) at every
     full-resolution pixel, over background (3,) (the trainer's colour space) and decoded
-    (``part_linear``), summed over the parts into out_color (H, W, 3) (linear) and out_trans
+    (``part_linear`` with lut, ``composite.DECODE``), summed over the parts into out_color (H, W, 3) (linear) and out_trans
     (H, W) float32, then the frame: image (H, W, 4) float32, their mean
     (``finish_linear_pixel``). out_depth (H, W) float32: the least
     over the parts of the depth at which a part's transmittance first falls to 1/2 (that
@@ -428,7 +428,7 @@ def combine_layers(images, offsets, part_layers, color, transmittance, depth, ba
                                          y1, cols, fracs, part, t_acc, d)
             for p in range(n_px):
                 for c in range(3):
-                    total[p, c] += part_linear(part[p, c], t_acc[p], background[c])
+                    total[p, c] += part_linear(part[p, c], t_acc[p], background[c], lut)
                 total[p, 3] += t_acc[p]
                 d_min[p] = min(d_min[p], d[p])
         for p in range(n_px):
