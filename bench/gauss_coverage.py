@@ -1,6 +1,8 @@
 """Prototypes of a blurred Gaussian frame's coverage (issue 48; docs/maths.md, "Gaussian
 scenes", item 2): slow numpy/numba drafts, not the renderer, scored against the lens
-reference over a black and a white background.
+reference over a black and a white background. The renderer has summed its blurred layers
+since stop 59 (``cpu_gauss.mark_summed``, ``layer_shares``): "today" below is that frame,
+and the drafts are kept for their variants.
 
     python bench/gaussians.py --backgrounds             # today's frames over both backgrounds
     python bench/gauss_coverage.py --scenes guitar donut --coc 35 [--samples 128]
