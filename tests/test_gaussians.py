@@ -402,7 +402,8 @@ def test_a_blurred_dark_sheet_over_white_against_the_reference(aperture, c_r, wh
     was 18.6 and the pinhole image is 13.1; over black 31.2, the blended frame's 38.7
     (docs/maths.md, "Gaussian scenes", item 2, says what summing costs there). At 8 px
     a part's blur (sigma 1.4 px) is narrower than the sheet's footprints (3.5 px), so
-    ``mark_summed`` leaves the layer blended: summed, it was 24.5 / 32.9."""
+    ``mark_summed`` leaves the layer blended, as the frame before summing (within 0.1 dB:
+    its lens visibility is from views of its layer alone); summed, it was 24.5 / 32.9."""
     from dofsplat.backends import cpu_gauss as cg
     from dofsplat.metrics import psnr
     from dofsplat.reference import render_reference
@@ -416,7 +417,9 @@ def test_a_blurred_dark_sheet_over_white_against_the_reference(aperture, c_r, wh
     for bg in (0.0, 1.0):
         st = ds.RenderSettings(gaussian_lod=False, background=(bg,) * 3)
         ref = render_reference(g, cam, lens, st, samples=64, progress=False).image
-        frame = ds.render(g, cam, lens, st).image
+        result = ds.render(g, cam, lens, st)
+        frame = result.image
+        assert result.stats["summed_layers"] == (1 if c_r > 20 else 0)
         saved = cg.LAYERS
         cg.LAYERS = dataclasses.replace(saved, summed_level=saved.split_level + 1)
         try:
@@ -429,8 +432,9 @@ def test_a_blurred_dark_sheet_over_white_against_the_reference(aperture, c_r, wh
     assert scores[1.0][0] > scores[1.0][2] + 5.0 and scores[0.0][0] > scores[0.0][2], scores
     if c_r > 20:
         assert scores[1.0][0] > scores[1.0][1] + 10.0, scores
-    else:
-        assert scores[1.0][0] == scores[1.0][1] and scores[0.0][0] == scores[0.0][1], scores
+    else:  # the same but for the lens visibility, from views of the layer alone
+        assert abs(scores[1.0][0] - scores[1.0][1]) < 0.1, scores
+        assert abs(scores[0.0][0] - scores[0.0][1]) < 0.1, scores
 
 
 def test_layers_at_full_resolution_are_the_parts_drawn_whole():

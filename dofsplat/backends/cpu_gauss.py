@@ -59,7 +59,6 @@ class LayerSettings:
     alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
     split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale)
-    summed_ratio: float = 1.0  # ... and where a part's blur is at least this x its Gaussians' footprints (median; ``mark_summed``)
     sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
@@ -67,8 +66,9 @@ class LayerSettings:
     visibility_max_scale: int = 16  # ... at most 1/this the resolution ...
     visibility_min_size: int = 120  # ... and never coarser than 1/visibility_scale where that leaves the visibility image fewer pixels than this along its longer side
     visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
-    summed_level: int = 1  # (``mark_summed``) layers of this level and coarser (blur sigma >= alpha 2^level px) are summed, not blended (docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before 2026-11-28's evening, with the lens visibility)
-    share_views: int = 8  # a summed layer's weights: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
+    summed_level: int = 1  # layers of this level and coarser (a part's blur sigma >= alpha 2^level px) are weighed by sharp views of their own (``blurred_layers``, ``layer_shares``) and summed where their blur is wide (``mark_summed``; docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before stop 59, with the whole frame's lens visibility)
+    summed_ratio: float = 1.0  # a blurred layer is summed where a part's blur is at least this x its Gaussians' footprints (the median; ``mark_summed``): the fruit at 10 px +9.8 dB over black against 0 (summed everywhere), the others alike; 2 cost the donut at 10 px 1.7 (64-sample references)
+    share_views: int = 8  # a blurred layer's weights: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
     share_radius: float = 0.7  # ... at this fraction of the lens's radius ...
     share_scale: int = 4  # ... at 1/this the resolution ...
     share_eps2d: float = 0.04  # ... with this low-pass, px^2 of their pixels
@@ -102,7 +102,7 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     share = None
     if layered:
         stats["summed_layers"] = len(summed_layers(layers))
-    if layered and summed_layers(layers):
+    if layered and blurred_layers(layers):
         share = layer_shares(scene, layers, camera, lens, settings)
     elif layered:
         share = lens_visibility_by_shifts(scene, camera, lens, settings, scale=vis_scale)
@@ -213,10 +213,9 @@ def mark_summed(arrays, layers: Layers, camera: Camera, lens, parts) -> None:
         s = np.sort(np.asarray(arrays.scales, np.float64), axis=1)
         ratio = blur * z / (fx * np.sqrt(s[:, 1] * s[:, 2]))
     summed = np.zeros(len(layers.scales), np.bool_)
-    for j, level in enumerate(layers.levels):
+    for j in blurred_layers(layers):
         a, b = layers.spans[j]
-        if j != layers.sharp and level >= LAYERS.summed_level and b > a:
-            summed[j] = np.median(ratio[a:b]) >= LAYERS.summed_ratio
+        summed[j] = np.median(ratio[a:b]) >= LAYERS.summed_ratio
     layers.summed = summed
 
 
@@ -260,24 +259,36 @@ def summed_layers(layers: Layers) -> list[int]:
 
 def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
                  settings: RenderSettings) -> np.ndarray:
-    """(N,) float32: each Gaussian's weight in its summed layer (``summed_layers``), 1 in the
-    others. A summed layer's blurred footprints are added, not blended, each weighted by the
+    """(N,) float32: each Gaussian's weight in its summed layer (``summed_layers``), its lens
+    visibility in the other ``blurred_layers``, 1 in the rest (blurred under 0.7 px). A
+    summed layer's blurred footprints are added, not blended, each weighted by the
     share of it that sharp views of its layer alone see (its largest ``seen_share`` over the
     lens centre and ``LAYERS.share_views`` points at ``share_radius`` of the lens's radius,
     ``lens_visibility_by_shifts`` with raw shares): a stack of overlapping Gaussians then
     adds up to the coverage of its front, where blended one over another their blurred
     footprints compound it (docs/maths.md, "Gaussian scenes", item 2)."""
     share = np.ones(len(scene), np.float32)
-    for j in summed_layers(layers):
+    for j in blurred_layers(layers):
         a, b = layers.spans[j]
         sub = GaussianArrays(positions=scene.positions[a:b], scales=scene.scales[a:b],
                              rotations=scene.rotations[a:b], opacity=scene.opacity[a:b],
                              sh=scene.sh[a:b], level=scene.level[a:b])
         share[a:b] = lens_visibility_by_shifts(
             sub, camera, lens, settings, views=LAYERS.share_views, scale=LAYERS.share_scale,
-            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=True,
+            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=bool(layers.summed[j]),
             floor=LAYERS.share_floor)
     return share
+
+
+def blurred_layers(layers: Layers) -> list[int]:
+    """The layers (their indices, with any Gaussian) of level ``LAYERS.summed_level`` or
+    coarser, the sharp slab aside: those that ``layer_shares`` weighs, from sharp views of
+    each alone (the summed ones, ``mark_summed``, by their seen shares; the others by the
+    lens visibility's clipped share, item 1 of docs/maths.md's "Gaussian scenes", so that what
+    no view sees does not bleed out of them either)."""
+    return [j for j, level in enumerate(layers.levels)
+            if j != layers.sharp and level >= LAYERS.summed_level
+            and layers.spans[j, 1] > layers.spans[j, 0]]
 
 
 def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, parts,

@@ -71,8 +71,8 @@ from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH,
 from ..gaussians import Gaussians
 from . import cpu_gauss
 from . import cuda as surfel_cuda
-from .cpu_gauss import (BLURS, blur_variance, in_layers, layer_plan, lod_cut, shifted_views,
-                        summed_layers, visibility_cameras)
+from .cpu_gauss import (BLURS, blur_variance, blurred_layers, in_layers, layer_plan, lod_cut,
+                        shifted_views, summed_layers, visibility_cameras)
 from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
                    exclusive_scan)
 
@@ -584,19 +584,20 @@ def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, s
 
 
 def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens, settings):
-    """(N,) float32 on the GPU: ``cpu_gauss.layer_shares``, each summed layer's weights from
+    """(N,) float32 on the GPU: ``cpu_gauss.layer_shares``, each blurred layer's weights from
     its own views (``lens_visibility_by_shifts_cuda`` on its run of the arrays)."""
     n = len(positions)
     share = _WS.get("g.layer_share", (n,), np.float32)
     _fill[_blocks(n), THREADS](share, 1.0)
     ls = cpu_gauss.LAYERS
-    for j in summed_layers(layers):
+    for j in blurred_layers(layers):
         a, b = (int(v) for v in layers.spans[j])
         sub = {key: value[a:b] for key, value in arrays.items()}
         lens_visibility_by_shifts_cuda(sub, positions[a:b], camera, lens, settings,
                                        ls.share_scale, views=ls.share_views,
-                                       radius=ls.share_radius, eps2d=ls.share_eps2d, raw=True,
-                                       floor=ls.share_floor, out=share[a:b])
+                                       radius=ls.share_radius, eps2d=ls.share_eps2d,
+                                       raw=bool(layers.summed[j]), floor=ls.share_floor,
+                                       out=share[a:b])
     return share
 
 
@@ -723,7 +724,7 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     arrays = device_gaussians(scene)
     clock.mark("select_ms")
     share = None
-    if layered and summed_layers(layers):
+    if layered and blurred_layers(layers):
         share = layer_shares_cuda(arrays, scene.positions, layers, camera, lens, settings)
     elif layered:
         share = lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens, settings,
