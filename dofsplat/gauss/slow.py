@@ -111,6 +111,17 @@ def project_one(position, scale, quaternion, opacity, sh, view, campos, fx, fy, 
     return mean, z, np.linalg.inv(cov), o, cut, colour
 
 
+def footprint_alpha(mean, conic, o, cut, px, py) -> float:
+    """A footprint's alpha at pixel (px, py): min(0.999, o e^-s), 0 where s < 0 or alpha is
+    below the cut."""
+    dv = mean - (px + 0.5, py + 0.5)
+    s = 0.5 * dv @ conic @ dv
+    if s < 0:
+        return 0.0
+    alpha = min(MAX_ALPHA, o * math.exp(-s))
+    return alpha if alpha >= cut else 0.0
+
+
 def composite(footprints, width, height):
     """(colour (H, W, 3), transmittance (H, W)) of projected footprints (``project_one``'s
     tuples), every pixel walking every Gaussian nearest first (ties in list order)."""
@@ -122,12 +133,8 @@ def composite(footprints, width, height):
             t, c = 1.0, np.zeros(3)
             for i in order:
                 mean, _, conic, o, cut, rgb = footprints[i]
-                dv = mean - (px + 0.5, py + 0.5)
-                s = 0.5 * dv @ conic @ dv
-                if s < 0:
-                    continue
-                alpha = min(MAX_ALPHA, o * math.exp(-s))
-                if alpha < cut:
+                alpha = footprint_alpha(mean, conic, o, cut, px, py)
+                if alpha == 0.0:
                     continue
                 if t * (1 - alpha) <= MIN_TRANSMITTANCE:
                     break
@@ -147,13 +154,7 @@ def composite_summed(footprints, width, height, weights):
         o, cut = o * w, cut * w
         for py in range(height):
             for px in range(width):
-                dv = mean - (px + 0.5, py + 0.5)
-                s = 0.5 * dv @ conic @ dv
-                if s < 0:
-                    continue
-                alpha = min(MAX_ALPHA, o * math.exp(-s))
-                if alpha < cut:
-                    continue
+                alpha = footprint_alpha(mean, conic, o, cut, px, py)
                 colour[py, px] += alpha * rgb
                 cover[py, px] += alpha
     over = cover > 1.0
