@@ -11,7 +11,7 @@ centroid with the residual blur, averaged in linear light; each pass is drawn in
 (``LAYERS``, ``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution
 its blur allows, the blurred ones summed (``mark_summed``, ``layer_shares``: the weights
 replace the lens visibility), every image of the frame composited in one loop: at a 35 px
-blur 1.5-3.2 x the pinhole frame on the four large shared scenes at 320 x 240, where the
+blur 1.5-3.0 x the pinhole frame on the four large shared scenes at 320 x 240, where the
 parts drawn whole cost 4.9-13.4 x (bench/RESULTS.md, "Over a white background: blurred
 layers summed", and the table above it; the 2-core AMD EPYC, shared).
 """
