@@ -58,7 +58,7 @@ class LayerSettings:
     enabled: bool = True  # False: each part drawn whole at full resolution, and lens_visibility (the frame of 2026-11-28)
     alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
-    split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale)
+    split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale; 6: the donut at 35 px +1.0 / -1.2 dB over black / white, the guitar alike, 64-sample references)
     sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
@@ -251,9 +251,9 @@ def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
 
 
 def summed_layers(layers: Layers) -> list[int]:
-    """The layers (their indices in ``layers``, with any Gaussian) whose Gaussians are
-    summed, not blended (``LAYERS.summed_level``; docs/maths.md, "Gaussian scenes", item 2):
-    those of level ``summed_level`` or coarser on either side of the focus."""
+    """The layers (their indices in ``layers``) whose Gaussians are summed, not blended
+    (``mark_summed``'s choice among the ``blurred_layers``; docs/maths.md, "Gaussian
+    scenes", item 2)."""
     return [int(j) for j in np.flatnonzero(layers.summed)]
 
 

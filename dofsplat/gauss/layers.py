@@ -109,9 +109,9 @@ def project_layers(positions, scales, rotations, opacity, sh, share, views, camp
     spans[j, 1] into rows, boxes and visible from row spans[j, 2] (the projections' rows
     one run after another, covering them all). share: (N,) the lens visibility, or (0,);
     on a summed image (``IM_SUM``) each Gaussian's weight instead: its opacity and cut
-    times it, after the blur (a Gaussian of weight 0 is not drawn). Then row r is moved onto images[row_image[r]] where that image's scale is not 1
-    (``move_footprint``: the same footprint in its pixels). Each row is
-    ``project_layer_row``'s."""
+    times it, after the blur (a Gaussian of weight 0 is not drawn). Then row r is moved
+    onto images[row_image[r]] where that image's scale is not 1 (``move_footprint``: the
+    same footprint in its pixels). Each row is ``project_layer_row``'s."""
     for r in numba.prange(rows.shape[0]):
         project_layer_row(r, positions, scales, rotations, opacity, sh, share, views, campos,
                           cameras, spans, antialiased, images, row_image, rows, boxes, visible)
