@@ -10,7 +10,8 @@ Here each Gaussian's exposure is its largest seen share (``composite.seen_share`
 over its footprint's integral) over ``--views`` pinhole views from a sphere around the scene
 (2.5 x its radius, ``--size`` px square; with ``--hemisphere`` the half that faces the
 default camera), and the tree is built again with colours merged by o A exposure^power
-(geometry and opacity as before). Printed: PSNR over black / white against the lens
+(``lod.build_tree(colour_weight=...)``, plus 1e-12 so that a pair nobody sees keeps its
+o A mean; geometry and opacity as before). Printed: PSNR over black / white against the lens
 reference (``--samples``) for the default frame from the usual tree and from this one, and
 no LOD's, at the bench's 10 and 35 px lenses (``bench/gaussians.py``), 320 x 240.
 """
@@ -63,42 +64,6 @@ def exposure(scene, views: int, size: int, facing=None) -> np.ndarray:
     return best
 
 
-def exposed_tree(scene, colour_weight: np.ndarray) -> L.GaussianTree:
-    """``lod.build_tree`` with each pair's colour merged by colour_weight (N,) (in the
-    scene's order) summed up the tree, its geometry and opacity as ``merge_pairs`` gives."""
-    order = L.morton_order(scene.positions)
-    mu = scene.positions[order].astype(np.float64)
-    scales = scene.scales[order].astype(np.float64)
-    rotations = scene.rotations[order]
-    opacity = scene.opacity[order].astype(np.float64)
-    sh = scene.sh[order].astype(np.float64)
-    cov = L.covariances(scales, rotations)
-    weight = opacity * L.cross_section(scales)
-    cw = weight * colour_weight[order] + 1e-12 * weight
-    levels = [(mu, scales, rotations.astype(np.float64), opacity, sh)]
-    while len(mu) > 1:
-        n = len(mu)
-        m = n // 2
-        a, b = slice(0, 2 * m, 2), slice(1, 2 * m, 2)
-        pair = cw[a] + cw[b]
-        f = np.where(pair > 0, cw[a] / np.where(pair > 0, pair, 1.0), 0.5)
-        colour = f[:, None, None] * sh[a] + (1.0 - f)[:, None, None] * sh[b]
-        if n % 2:
-            colour = np.concatenate([colour, sh[-1:]])
-            pair = np.concatenate([pair, cw[-1:]])
-        mu, cov, weight, _ = L.merge_pairs(mu, cov, weight, sh)
-        sh, cw = colour, pair
-        s, q = L.scales_rotations(cov)
-        levels.append((mu, s, q, weight / np.maximum(L.cross_section(s), 1e-300), sh))
-    offsets = np.zeros(len(levels) + 1, np.int64)
-    offsets[1:] = np.cumsum([len(lv[0]) for lv in levels])
-    cat = lambda i: np.concatenate([lv[i] for lv in levels]).astype(np.float32)  # noqa: E731
-    all_scales = cat(1)
-    return L.GaussianTree(positions=cat(0), scales=all_scales, rotations=cat(2), opacity=cat(3),
-                          sh=cat(4), extent=all_scales.max(axis=1), offsets=offsets,
-                          fingerprint=L.fingerprint(scene, cached=True))
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", default=["guitar", "biker", "donut", "playbot"],
@@ -122,7 +87,8 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         seen = exposure(scene, args.views, args.size, facing)
         seconds = time.perf_counter() - t
-        trees = {"usual": L.build_tree(scene), "exposed": exposed_tree(scene, seen ** args.power)}
+        trees = {"usual": L.build_tree(scene),
+                 "exposed": L.build_tree(scene, colour_weight=seen ** args.power + 1e-12)}
         for coc in (10.0, 35.0):
             lens = G.lens_for(scene, camera, coc, pinhole.depth)
             cells = {}

@@ -227,31 +227,45 @@ def matrix_quaternions(r: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def merge_pairs(mu, cov, weight, sh):
+def merge_pairs(mu, cov, weight, sh, colour=None):
     """Moment matching of consecutive pairs (0, 1), (2, 3), ...; an odd last row is kept.
-    mu (n, 3), cov (n, 3, 3), weight (n,), sh (n, K, 3): the parents' (mu, cov, weight, sh)."""
+    mu (n, 3), cov (n, 3, 3), weight (n,), sh (n, K, 3): the parents' (mu, cov, weight, sh,
+    colour). colour: (n,) the weights the SH are merged by instead of weight, summed as
+    weight is (None: weight's; ``build_tree``'s colour_weight)."""
     n = len(mu)
     m = n // 2
     a, b = slice(0, 2 * m, 2), slice(1, 2 * m, 2)
-    wa, wb = weight[a], weight[b]
-    w = wa + wb
-    fa = np.where(w > 0, wa / np.where(w > 0, w, 1.0), 0.5)
+    w = weight[a] + weight[b]
+    fa = pair_fraction(weight[a], w)
     fb = 1.0 - fa
     mu_p = fa[:, None] * mu[a] + fb[:, None] * mu[b]
     da, db = mu[a] - mu_p, mu[b] - mu_p
     cov_p = (fa[:, None, None] * (cov[a] + da[:, :, None] * da[:, None, :])
              + fb[:, None, None] * (cov[b] + db[:, :, None] * db[:, None, :]))
-    sh_p = fa[:, None, None] * sh[a] + fb[:, None, None] * sh[b]
+    colour_p = None
+    if colour is not None:
+        colour_p = colour[a] + colour[b]
+        fa = pair_fraction(colour[a], colour_p)
+    sh_p = fa[:, None, None] * sh[a] + (1.0 - fa)[:, None, None] * sh[b]
     if n % 2:
         mu_p = np.concatenate([mu_p, mu[-1:]])
         cov_p = np.concatenate([cov_p, cov[-1:]])
         w = np.concatenate([w, weight[-1:]])
         sh_p = np.concatenate([sh_p, sh[-1:]])
-    return mu_p, cov_p, w, sh_p
+        if colour is not None:
+            colour_p = np.concatenate([colour_p, colour[-1:]])
+    return mu_p, cov_p, w, sh_p, colour_p
 
 
-def build_tree(scene) -> GaussianTree:
-    """The hierarchy of a ``Gaussians`` scene (module docstring)."""
+def pair_fraction(first, total):
+    """first / total per pair, 1/2 where total is 0."""
+    return np.where(total > 0, first / np.where(total > 0, total, 1.0), 0.5)
+
+
+def build_tree(scene, colour_weight=None) -> GaussianTree:
+    """The hierarchy of a ``Gaussians`` scene (module docstring). colour_weight: (N,) a
+    factor on each Gaussian's weight o A for the colour merges alone (None: 1;
+    ``bench/gauss_lod_exposure.py``'s exposure)."""
     order = morton_order(scene.positions)
     mu = scene.positions[order].astype(np.float64)
     scales = scene.scales[order].astype(np.float64)
@@ -260,9 +274,10 @@ def build_tree(scene) -> GaussianTree:
     sh = scene.sh[order].astype(np.float64)
     cov = covariances(scales, rotations)
     weight = opacity * cross_section(scales)
+    colour = None if colour_weight is None else weight * colour_weight[order]
     levels = [(mu, scales, rotations.astype(np.float64), opacity, sh)]
     while len(mu) > 1:
-        mu, cov, weight, sh = merge_pairs(mu, cov, weight, sh)
+        mu, cov, weight, sh, colour = merge_pairs(mu, cov, weight, sh, colour)
         s, q = scales_rotations(cov)
         o = weight / np.maximum(cross_section(s), 1e-300)
         levels.append((mu, s, q, o, sh))
