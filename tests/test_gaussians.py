@@ -171,9 +171,10 @@ def test_fast_kernels_match_the_slow_twins_pinhole_and_blurred():
 
 def test_summed_compositing_matches_the_slow_twin():
     """A summed layer's image (``composite_images`` on an image flagged ``IM_SUM``, the rows'
-    opacity and cut times a weight as ``project_layers`` does) against ``slow.composite_summed``:
-    every footprint added, the coverage clamped at 1; to 2e-5 (float32 rows against
-    float64) but where an alpha sits at its cut. Blurred, so that footprints overlap and some pixels' sums pass 1."""
+    opacity and cut times a weight as ``project_layers`` does) against
+    ``slow.composite_summed``: every footprint added, the coverage clamped at 1; to 2e-5
+    (float32 rows against float64) but where an alpha sits at its cut. Blurred, so that
+    footprints overlap and some pixels' sums pass 1."""
     from dofsplat.backends.cpu_gauss import NO_SEEN, project
     from dofsplat.gauss.layers import bin_images, composite_images, image_table
     from dofsplat.gauss.project import F_CUT, F_OPACITY

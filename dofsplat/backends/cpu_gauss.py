@@ -93,7 +93,7 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     stats = {}
     t = time.perf_counter()
     if layered:
-        vis_scale = visibility_scale_for(scene.positions, camera, lens, settings)
+        positions = scene.positions  # the scene's, not the cut's (``visibility_scale_for``)
         scene, layers = in_layers(scene, camera, lens, parts, settings, lod)
     elif lod:
         scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
@@ -105,6 +105,7 @@ def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
     if layered and blurred_layers(layers):
         share = layer_shares(scene, layers, camera, lens, settings)
     elif layered:
+        vis_scale = visibility_scale_for(positions, camera, lens, settings)
         share = lens_visibility_by_shifts(scene, camera, lens, settings, scale=vis_scale)
         stats["visibility_scale"] = vis_scale
     elif blur == "ours" and blurred:
@@ -174,7 +175,7 @@ class Layers:
     spans: np.ndarray  # (L, 2) int64: layer j (front to back) is memory rows spans[j, 0] .. spans[j, 1]
     scales: np.ndarray  # (L,) int64: layer j is drawn at 1/scales[j] the resolution
     levels: np.ndarray  # (L,) int64: layer j's level (``layer_keys``)
-    summed: np.ndarray  # (L,) bool: layer j's Gaussians are summed, not blended (``mark_summed``)
+    summed: np.ndarray  # (L,) bool: layer j is summed, not blended (``mark_summed``)
     sharp: int  # the sharp slab's layer (drawn once, from the lens centre): first in memory
 
 
@@ -205,17 +206,20 @@ def mark_summed(arrays, layers: Layers, camera: Camera, lens, parts) -> None:
     over the whole footprint, the share is right only where the blur is wider than the
     part of the footprint that is seen (docs/maths.md, "Gaussian scenes", item 2)."""
     view = view_matrix(camera)
-    z = np.asarray(arrays.positions, np.float64) @ view[2, :3] + view[2, 3]
     coc_k, inv_focus = lens.coc_coefficients(camera)
+    sigma_k = parts.rho * math.sqrt(blur_variance(lens)) * coc_k
     fx = intrinsics(camera)[0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        blur = parts.rho * math.sqrt(blur_variance(lens)) * coc_k * np.abs(1.0 / z - inv_focus)
-        s = np.sort(np.asarray(arrays.scales, np.float64), axis=1)
-        ratio = blur * z / (fx * np.sqrt(s[:, 1] * s[:, 2]))
     summed = np.zeros(len(layers.scales), np.bool_)
-    for j in blurred_layers(layers):
+    for j in blurred_layers(layers):  # (only their rows: this is every frame's work)
         a, b = layers.spans[j]
-        summed[j] = np.median(ratio[a:b]) >= LAYERS.summed_ratio
+        z = np.asarray(arrays.positions[a:b], np.float64) @ view[2, :3] + view[2, 3]
+        s = np.sort(np.asarray(arrays.scales[a:b], np.float64), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # blur sigma_k |1/z - 1/P| over the footprint f sqrt(s2 s3) / z (negative
+            # behind the camera, where nothing is drawn)
+            ratio = (sigma_k * np.abs(1.0 - z * inv_focus) * np.sign(z)
+                     / (fx * np.sqrt(s[:, 1] * s[:, 2])))
+        summed[j] = np.median(ratio) >= LAYERS.summed_ratio
     layers.summed = summed
 
 

@@ -58,10 +58,11 @@ from numba import cuda
 
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, coc_coefficients, lens_parts
-from ..gauss.composite import (DECODE, MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T, TILE,
-                               add, add_linear_part, best_view_share, blend, finish_linear_pixel,
-                               finish_pixel, finish_sum, floored, gaussian_alpha, lens_share,
-                               part_linear, raw_view_share, seen_share, start_pixel)
+from ..gauss.composite import (DECODE, MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T,
+                               TILE, add, add_linear_part, best_view_share, blend,
+                               finish_linear_pixel, finish_pixel, finish_sum, floored,
+                               gaussian_alpha, lens_share, part_linear, raw_view_share,
+                               seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
                             IM_SUM, IM_TILE0, IM_WIDTH, image_table, layer_listed_over,
                             layer_sample, mark_live, over_pixel, project_layer_row)
@@ -717,7 +718,7 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     lod = settings.lod and settings.gaussian_lod and blurred
     layered = cpu_gauss.LAYERS.enabled and parts is not None and blur == "ours"
     if layered:
-        vis_scale = cpu_gauss.visibility_scale_for(scene.positions, camera, lens, settings)
+        positions = scene.positions  # the scene's, not the cut's (``visibility_scale_for``)
         scene, layers = in_layers(scene, camera, lens, parts, settings, lod)
     elif lod:
         scene = lod_cut(scene, camera, lens if parts is None else parts.residual, settings)
@@ -727,8 +728,9 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     if layered and blurred_layers(layers):
         share = layer_shares_cuda(arrays, scene.positions, layers, camera, lens, settings)
     elif layered:
-        share = lens_visibility_by_shifts_cuda(arrays, scene.positions, camera, lens, settings,
-                                               vis_scale)
+        share = lens_visibility_by_shifts_cuda(
+            arrays, scene.positions, camera, lens, settings,
+            cpu_gauss.visibility_scale_for(positions, camera, lens, settings))
     elif blur == "ours" and blurred:
         share = lens_visibility_cuda(arrays, camera, lens, settings)
     clock.mark("visibility_ms")

@@ -343,11 +343,22 @@ DECODE = decode_table()
 def decode(x, lut):
     """``colors.srgb_to_linear`` of one value x in [0, 1], for the kernels (and their CUDA
     twins): linear between the steps of lut (``DECODE``, ``decode_table``), within 8e-8 of
-    the curve (float32's own step near 1 is 6e-8), 8 x faster than its power (a frame's
-    every part is decoded: 25 million values at 1920 x 1080 in 4 parts)."""
+    the curve (float32's own step near 1 is 6e-8), where a power per value took the 35 px
+    frames at 1920 x 1080 1.1-1.7 x longer (every part is decoded: 25 million values in 4
+    parts; bench/RESULTS.md, "Over a white background: blurred layers summed")."""
     f = x * (lut.shape[0] - 1)
     i = min(int(f), lut.shape[0] - 2)
     return lut[i] + (f - i) * (lut[i + 1] - lut[i])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def part_linear(value, t, bg, lut):
+    """One channel of a lens part's pixel in linear light: its composite (value, of
+    transmittance t, the trainer's colour space) over the background bg (the same space),
+    clipped to [0, 1] and decoded (``decode``): a frame's pixel (``finish_pixel``), or each
+    part's, the parts of the lens averaged so, as the lens reference averages its views
+    (docs/maths.md, "Gaussian scenes")."""
+    return decode(min(max(value + t * bg, 0.0), 1.0), lut)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -355,21 +366,11 @@ def finish_pixel(color, trans, y, x, scale, bg, lut, out):
     """out[y, x] (RGBA): the composite over the background, in linear RGB. color (H, W, 3)
     and trans (H, W) are scaled by ``scale`` (1/K for the sums of K lens parts); bg (3,) is
     the background in the trainer's colour space. The composite C + T bg is clipped to
-    [0, 1] there and decoded (``decode`` with lut); alpha is 1 - T."""
+    [0, 1] there and decoded (``part_linear``, with lut); alpha is 1 - T."""
     t = trans[y, x] * scale
     for c in range(3):
-        v = color[y, x, c] * scale + t * bg[c]
-        out[y, x, c] = decode(min(max(v, 0.0), 1.0), lut)
+        out[y, x, c] = part_linear(color[y, x, c] * scale, t, bg[c], lut)
     out[y, x, 3] = 1.0 - t
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def part_linear(value, t, bg, lut):
-    """One channel of a lens part's pixel in linear light: its composite (value, of
-    transmittance t, the trainer's colour space) over the background bg (the same space),
-    clipped to [0, 1] and decoded, as ``finish_pixel``. The parts of the lens are averaged
-    so, as the lens reference averages its views (docs/maths.md, "Gaussian scenes")."""
-    return decode(min(max(value + t * bg, 0.0), 1.0), lut)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

@@ -385,9 +385,9 @@ def combine_layers(images, offsets, part_layers, color, transmittance, depth, ba
                    lut, out_color, out_trans, out_depth, image):
     """Each part's layers joined front to back ("over", the module docstring) at every
     full-resolution pixel, over background (3,) (the trainer's colour space) and decoded
-    (``part_linear`` with lut, ``composite.DECODE``), summed over the parts into out_color (H, W, 3) (linear) and out_trans
-    (H, W) float32, then the frame: image (H, W, 4) float32, their mean
-    (``finish_linear_pixel``). out_depth (H, W) float32: the least
+    (``part_linear`` with lut, ``composite.DECODE``), summed over the parts into out_color
+    (H, W, 3) (linear) and out_trans (H, W) float32, then the frame: image (H, W, 4)
+    float32, their mean (``finish_linear_pixel``). out_depth (H, W) float32: the least
     over the parts of the depth at which a part's transmittance first falls to 1/2 (that
     layer's median depth, or the next layer's behind it where that layer's own is none).
     part_layers: (K, L) int64, each part's images front to back, -1 after the last;
