@@ -75,16 +75,13 @@ def in_layers(*args, **kwargs):
 
 
 def layer_plan(n, layers, camera, lens, parts, settings):
-    """The renderer's plan, and which (part, layer) each image of it is (its order)."""
+    """The renderer's plan, and which (part, layer) each image of it is, read from its
+    part_layers (each part's images, one per layer with any Gaussian, front to back)."""
     plan = ORIGINAL["layer_plan"](n, layers, camera, lens, parts, settings)
-    image = 0 if layers.spans[layers.sharp, 1] == 0 else 1
-    which = {}
-    for p in range(len(parts.cameras)):
-        for j in range(len(layers.scales)):
-            a, b = layers.spans[j]
-            if b > a and j != layers.sharp:
-                which[image] = (p, j)
-                image += 1
+    part_layers = plan[-1]
+    filled = [j for j in range(len(layers.scales)) if layers.spans[j, 1] > layers.spans[j, 0]]
+    which = {int(part_layers[p, col]): (p, j) for p in range(len(part_layers))
+             for col, j in enumerate(filled) if j != layers.sharp}
     FRAME.update(which=which, layers=layers, camera=camera, lens=lens, parts=parts,
                  settings=settings)
     return plan
@@ -174,8 +171,9 @@ def sampled(table, i, color, trans, h, w):
     (``composite_images`` writes only the tiles that ``combine_layers`` reads)."""
     iw, ih, s, m, q0 = (int(table[i, c]) for c in (IM_WIDTH, IM_HEIGHT, IM_SCALE, IM_MARGIN,
                                                     IM_PIXEL0))
-    c = color[q0:q0 + iw * ih].reshape(ih, iw, 3).astype(np.float64)
-    t = trans[q0:q0 + iw * ih].reshape(ih, iw).astype(np.float64)
+    with np.errstate(all="ignore"):  # (the tiles never written hold anything)
+        c = color[q0:q0 + iw * ih].reshape(ih, iw, 3).astype(np.float64)
+        t = trans[q0:q0 + iw * ih].reshape(ih, iw).astype(np.float64)
     ty, tx = np.mgrid[0:ih, 0:iw]
     tile = table[i, IM_TILE0] + (ty // TILE) * -(-iw // TILE) + tx // TILE
     empty = FRAME["offsets"][tile + 1] == FRAME["offsets"][tile]
