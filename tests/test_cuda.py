@@ -508,8 +508,8 @@ def test_gaussian_layers_match_cpu():
     settings = ds.RenderSettings()
     parts = lens_parts(camera, lens, replace(settings, lens_samples=4))
     scene, layers = in_layers(_gaussians(), camera, lens, parts, settings, lod=False)
-    views, campos, cameras, spans, table, _ = bg.layer_plan(len(scene), layers, camera, lens,
-                                                            parts, settings)
+    views, campos, cameras, spans, table, _, _ = bg.layer_plan(len(scene), layers, camera,
+                                                               lens, parts, settings)
     assert len(table) >= 9 and set(table[:, IM_SCALE]) >= {1, 2}
     rows, boxes, visible = project_plan(scene, views, campos, cameras, spans, table)
     n_rows = len(rows)
@@ -528,8 +528,8 @@ def test_gaussian_layers_match_cpu():
     bg._project_layers[bg._blocks(n_rows), bg.THREADS](
         arrays["positions"], arrays["scales"], arrays["rotations"], arrays["opacity"],
         arrays["sh"], bg.cuda.to_device(NO_SHARE), bg._upload(views), bg._upload(campos),
-        bg._upload(cameras), bg._upload(spans), False, images.table, images.row_image, d_rows,
-        d_boxes, d_visible)
+        bg._upload(cameras), bg._upload(spans), False, 0.04, images.table, images.row_image,
+        d_rows, d_boxes, d_visible)
     np.testing.assert_array_equal(d_visible.copy_to_host(), visible)
     np.testing.assert_array_equal(d_boxes.copy_to_host(), boxes)
     # libdevice's exp, sqrt and log against libm's: float32 rounding

@@ -9,11 +9,11 @@ in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default, an
 ``lens_samples``; ``frame.lens_parts``) the frame is K passes, each seen from its part's
 centroid with the residual blur, averaged in linear light; each pass is drawn in layers
 (``LAYERS``, ``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution
-its blur allows, the blurred ones summed (``mark_summed``, ``layer_shares``: the weights
-replace the lens visibility), every image of the frame composited in one loop: at a 35 px
-blur 1.5-3.0 x the pinhole frame on the four large shared scenes at 320 x 240, where the
-parts drawn whole cost 4.9-13.4 x (bench/RESULTS.md, "Over a white background: blurred
-layers summed", and the table above it; the 2-core AMD EPYC, shared).
+its blur allows, every image of the frame composited in one loop. A widely blurred layer is
+*summed* (``mark_summed``): drawn alone and sharp, blurred, and joined in linear light
+(``blur_summed``); the other blurred layers take a lens visibility from sharp views of
+their own (``layer_shares``). bench/RESULTS.md, "Gaussian scenes against gsplat and the
+lens reference", has the figures and their commands.
 """
 
 from __future__ import annotations
@@ -28,15 +28,16 @@ from ..jit import numba
 from ..camera import Camera, effective_diameter, lens_camera
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, RenderSettings, coc_coefficients, lens_parts
-from ..gauss.composite import (DECODE, TILE, add_linear_parts, best_view_shares, bin_tiles,
-                               composite_tiles, depth_order, finish_image,
-                               finish_linear_image, finish_shares, keep_best_share,
-                               raw_view_shares)
-from ..gauss.layers import (IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_WIDTH, N_P,
-                            P_BLUR_VARIANCE, P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT,
-                            P_INV_FOCUS, P_NEAR, P_WIDTH, bin_images, combine_layers,
-                            composite_images, image_table, layer_keys, live_tiles,
-                            project_layers)
+from ..gauss.composite import (DECODE, ENCODE, TILE, add_linear_parts, best_view_shares,
+                               bin_tiles, composite_tiles, depth_order, finish_image,
+                               finish_linear_image, finish_shares, keep_best_share)
+from ..gauss.layers import (BLUR_REACH, IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SOURCE,
+                            IM_SUM, IM_WIDTH, MAX_LAYERS, N_BLUR, N_P, P_BLUR_VARIANCE,
+                            P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT, P_INV_FOCUS, P_NEAR,
+                            P_WIDTH,
+                            bin_images, blur_columns, blur_rows, combine_layers,
+                            composite_images, filled_tiles, image_table, layer_keys,
+                            live_tiles, project_layers)
 from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
                              project_gaussians, project_shifted_views, view_matrix)
 from ..gauss.lod import GaussianArrays, cut_arrays, select_cut, tree_for
@@ -66,14 +67,17 @@ class LayerSettings:
     visibility_max_scale: int = 16  # ... at most 1/this the resolution ...
     visibility_min_size: int = 120  # ... and never coarser than 1/visibility_scale where that leaves the visibility image fewer pixels than this along its longer side
     visibility_eps2d: float = 1.0 / 12.0  # lens visibility: its views' low-pass, px^2 of their pixels: a pixel's own area variance (the trainers' 0.3: -0.6 to +0.2 dB, 1.2 x the visibility's time)
-    summed_level: int = 1  # layers of this level and coarser (a part's blur sigma >= alpha 2^level px) are weighed by sharp views of their own (``blurred_layers``, ``layer_shares``) and summed where their blur is wide (``mark_summed``; docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before stop 59, with the whole frame's lens visibility)
-    summed_ratio: float = 1.0  # a blurred layer is summed where a part's blur is at least this x its Gaussians' footprints (the median; ``mark_summed``): the fruit at 10 px +9.8 dB over black against 0 (summed everywhere), the others alike; 2 cost the donut at 10 px 1.7 (64-sample references)
-    share_views: int = 8  # a blurred layer's weights: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
+    summed_level: int = 1  # layers of this level and coarser (a part's blur sigma >= alpha 2^level px) are summed where their blur is wide (``mark_summed``), the others weighed by sharp views of their own (``blurred_layers``, ``layer_shares``; docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before stop 59, with the whole frame's lens visibility)
+    summed_ratio: float = 1.0  # a blurred layer is summed where a part's blur is at least this x its Gaussians' footprints (the median; ``mark_summed``): 0 (every blurred layer summed) cost the fruit at 10 px 14.7 dB over black at 320 x 240, the others within 0.9 dB (stop 61, 64-sample references)
+    sharp_scale: int = 2  # a summed layer is drawn alone and sharp at 1/this the resolution (its "sharp view"; the prototype, stop 60: 1/4 lost up to 4.2 dB, full resolution up to 1.5) ...
+    sharp_fraction: float = 0.25  # ... or at 1/(this x its layer's scale) where coarser, a power of 2 (0.5: the donut at 10 px -1.9 dB over black, 320 x 240; 0.25: -0.5..+0.6 dB there, the guitar's 35 px frame at 1920 x 1080 0.88 x the time)
+    sharp_eps2d: float = 0.04  # ... with this low-pass, px^2 of its pixels (0.3 lost 0.5-6 dB in the prototype)
+    summed_alpha: float = 1.0  # ... then blurred onto its image, whose pixel is at most 1/this x the blur, a power of 2 below its layer's scale (a blurred edge is sampled, where the layers' alpha is for footprints at least that wide: 0.35 scored -3.2..+0.9 dB at 320 x 240, the donut at 10 px -3.2 over black, playbot at 10 px +0.8)
+    blur_quantile: float = 0.5  # ... by a Gaussian of this quantile of its Gaussians' blur (a part's sigma; 0.25: -0.3..+0.8 dB at 320 x 240)
+    share_views: int = 8  # a blurred layer that is not summed: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
     share_radius: float = 0.7  # ... at this fraction of the lens's radius ...
     share_scale: int = 4  # ... at 1/this the resolution ...
     share_eps2d: float = 0.04  # ... with this low-pass, px^2 of their pixels
-    share_floor: float = 0.01  # a summed Gaussian whose weight is below this is not drawn (guitar and playbot at 10 and 35 px, 64-sample references: 0.01 drew 9-16 % fewer Gaussians in 5-7 % less time, +0.00..+0.12 dB; 0.03 cost the donut at 35 px 0.95 dB over black, 0.01 0.22)
-
 
 LAYERS = LayerSettings()
 
@@ -176,6 +180,7 @@ class Layers:
     scales: np.ndarray  # (L,) int64: layer j is drawn at 1/scales[j] the resolution
     levels: np.ndarray  # (L,) int64: layer j's level (``layer_keys``)
     summed: np.ndarray  # (L,) bool: layer j is summed, not blended (``mark_summed``)
+    blur: np.ndarray  # (L,) float64: a summed layer's blur, the standard deviation (px) of a part's (``mark_summed``)
     sharp: int  # the sharp slab's layer (drawn once, from the lens centre): first in memory
 
 
@@ -198,18 +203,20 @@ def in_layers(scene: Gaussians, camera: Camera, lens, parts, settings: RenderSet
 
 
 def mark_summed(arrays, layers: Layers, camera: Camera, lens, parts) -> None:
-    """Set ``layers.summed``: a layer other than the sharp slab is summed where its level is
-    ``LAYERS.summed_level`` or coarser and its blur is wide against its Gaussians' own
-    footprints: the median over them of a part's blur (standard deviation, px) over the
-    footprint's (f sqrt(s2 s3) / z, the two largest scales) at least ``summed_ratio``.
-    A summed layer's weights are the shares of its Gaussians that sharp views see; spread
-    over the whole footprint, the share is right only where the blur is wider than the
-    part of the footprint that is seen (docs/maths.md, "Gaussian scenes", item 2)."""
+    """Set ``layers.summed`` and ``layers.blur``: a layer other than the sharp slab is
+    summed where its level is ``LAYERS.summed_level`` or coarser and its blur is wide
+    against its Gaussians' own footprints: the median over them of a part's blur (standard
+    deviation, px) over the footprint's (f sqrt(s2 s3) / z, the two largest scales) at
+    least ``summed_ratio``. A summed layer is its sharp view (at 1/2 the resolution or
+    coarser) blurred by ``blur``, its Gaussians' blur's ``blur_quantile``: where the blur is
+    narrower than the footprints, what the view holds is finer than it can draw, and the
+    layer stays blended (docs/maths.md, "Gaussian scenes", item 2)."""
     view = view_matrix(camera)
     coc_k, inv_focus = lens.coc_coefficients(camera)
     sigma_k = parts.rho * math.sqrt(blur_variance(lens)) * coc_k
     fx = intrinsics(camera)[0]
     summed = np.zeros(len(layers.scales), np.bool_)
+    blur = np.zeros(len(layers.scales))
     for j in blurred_layers(layers):  # (only their rows: this is every frame's work)
         a, b = layers.spans[j]
         z = np.asarray(arrays.positions[a:b], np.float64) @ view[2, :3] + view[2, 3]
@@ -220,7 +227,12 @@ def mark_summed(arrays, layers: Layers, camera: Camera, lens, parts) -> None:
             ratio = (sigma_k * np.abs(1.0 - z * inv_focus) * np.sign(z)
                      / (fx * np.sqrt(s[:, 1] * s[:, 2])))
         summed[j] = np.median(ratio) >= LAYERS.summed_ratio
-    layers.summed = summed
+        ahead = z > 0.0
+        if summed[j] and np.any(ahead):
+            blur[j] = np.quantile(sigma_k * np.abs(1.0 / z[ahead] - inv_focus),
+                                  LAYERS.blur_quantile)
+    layers.summed = summed & (blur > 0.0)
+    layers.blur = blur
 
 
 def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
@@ -251,7 +263,8 @@ def layer_order(positions: np.ndarray, camera: Camera, lens, parts) -> Layers:
             spans[j] = start, start + counts[j]
             start += counts[j]
     return Layers(order=order, spans=spans, scales=scales, levels=levels,
-                  summed=np.zeros(len(scales), np.bool_), sharp=sharp)
+                  summed=np.zeros(len(scales), np.bool_), blur=np.zeros(len(scales)),
+                  sharp=sharp)
 
 
 def summed_layers(layers: Layers) -> list[int]:
@@ -263,33 +276,31 @@ def summed_layers(layers: Layers) -> list[int]:
 
 def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
                  settings: RenderSettings) -> np.ndarray:
-    """(N,) float32: each Gaussian's weight in its summed layer (``summed_layers``), its lens
-    visibility in the other ``blurred_layers``, 1 in the rest (blurred under 0.7 px). A
-    summed layer's blurred footprints are added, not blended, each weighted by the
-    share of it that sharp views of its layer alone see (its largest ``seen_share`` over the
-    lens centre and ``LAYERS.share_views`` points at ``share_radius`` of the lens's radius,
-    ``lens_visibility_by_shifts`` with raw shares): a stack of overlapping Gaussians then
-    adds up to the coverage of its front, where blended one over another their blurred
-    footprints compound it (docs/maths.md, "Gaussian scenes", item 2)."""
+    """(N,) float32, or None where no layer needs it: each Gaussian's lens visibility in the
+    ``blurred_layers`` that are not summed (its clipped share, ``lens_share``, largest over
+    sharp views of its layer alone from the lens centre and ``LAYERS.share_views`` points
+    at ``share_radius`` of the lens's radius, ``lens_visibility_by_shifts``), 1 in the rest
+    (a summed layer is drawn sharp, and a layer blurred under 0.7 px takes none)."""
+    weighed = [j for j in blurred_layers(layers) if not layers.summed[j]]
+    if not weighed:
+        return None
     share = np.ones(len(scene), np.float32)
-    for j in blurred_layers(layers):
+    for j in weighed:
         a, b = layers.spans[j]
         sub = GaussianArrays(positions=scene.positions[a:b], scales=scene.scales[a:b],
                              rotations=scene.rotations[a:b], opacity=scene.opacity[a:b],
                              sh=scene.sh[a:b], level=scene.level[a:b])
         share[a:b] = lens_visibility_by_shifts(
             sub, camera, lens, settings, views=LAYERS.share_views, scale=LAYERS.share_scale,
-            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d, raw=bool(layers.summed[j]),
-            floor=LAYERS.share_floor)
+            radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d)
     return share
 
 
 def blurred_layers(layers: Layers) -> list[int]:
     """The layers (their indices, with any Gaussian) of level ``LAYERS.summed_level`` or
-    coarser, the sharp slab aside: those that ``layer_shares`` weighs, from sharp views of
-    each alone (the summed ones, ``mark_summed``, by their seen shares; the others by the
-    lens visibility's clipped share, item 1 of docs/maths.md's "Gaussian scenes", so that what
-    no view sees does not bleed out of them either)."""
+    coarser, the sharp slab aside: those that are summed (``mark_summed``) or else weighed
+    by ``layer_shares`` (the lens visibility's clipped share, item 1 of docs/maths.md's
+    "Gaussian scenes", so that what no view sees does not bleed out of them)."""
     return [j for j, level in enumerate(layers.levels)
             if j != layers.sharp and level >= LAYERS.summed_level
             and layers.spans[j, 1] > layers.spans[j, 0]]
@@ -299,21 +310,23 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
                  settings: RenderSettings, share=None):
     """The lens in parts, each drawn in layers (``gauss/layers.py``): (image (H, W, 4) linear
     RGBA, depth (H, W), stats). The sharp slab is projected once, from the lens centre with
-    the whole lens's blur; the other layers from each part's camera with the residual blur,
-    then moved onto their layer's image (``project_layers``, one loop); every image is
-    composited in one loop (``composite_images``); each part's layers are joined per pixel
-    and the parts averaged (``combine_layers``). share: the lens visibility, or None."""
+    the whole lens's blur; the other layers from each part's camera with the residual blur
+    (a summed layer's without it, onto its sharp view), then moved onto their layer's image
+    (``project_layers``, one loop); every image is composited in one loop
+    (``composite_images``); each summed layer's image is blurred from its sharp view
+    (``blur_summed``); each part's layers are joined per pixel and the parts averaged
+    (``combine_layers``). share: the lens visibility, or None."""
     stats = {}
     t = time.perf_counter()
     h, w = camera.height, camera.width
-    views, campos, cameras, spans, table, part_layers = layer_plan(len(scene), layers, camera,
-                                                                   lens, parts, settings)
+    views, campos, cameras, spans, table, part_layers, blurs = layer_plan(
+        len(scene), layers, camera, lens, parts, settings)
     if not len(table):  # nothing in front of the camera
         empty = np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32)
         return (to_linear_rgba(*empty, settings.background), np.full((h, w), np.inf, np.float32),
                 {"splats_rendered": 0, "fragments": 0, "layers": 0})
     rows, boxes, visible = project_plan(scene, views, campos, cameras, spans, table, share,
-                                        settings.gaussian_antialiased)
+                                        settings.gaussian_antialiased, LAYERS.sharp_eps2d)
     n_rows = len(rows)
     stats["project_ms"] = _ms(t)
     t = time.perf_counter()
@@ -326,14 +339,19 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     trans = np.empty(n_px, np.float32)
     depth = np.empty(n_px, np.float32)
     composite_images(rows, boxes, offsets, ids, tile_image, table,
-                     live_tiles(offsets, table, tile_image), color, trans, depth, NO_SEEN)
+                     live_tiles(offsets, table, tile_image), color, trans, depth, NO_SEEN, DECODE)
     stats["composite_ms"] = _ms(t)
+    t = time.perf_counter()
+    filled = np.empty(len(tile_image), np.bool_)
+    filled_tiles(offsets, filled)
+    blur_summed(table, blurs, offsets, color, trans, depth, filled)
+    stats["blur_ms"] = _ms(t)
     t = time.perf_counter()
     out_depth = np.empty((h, w), np.float32)
     image = np.empty((h, w, 4), np.float32)
-    combine_layers(table, offsets, part_layers, color, trans,
+    combine_layers(table, filled, part_layers, color, trans,
                    depth, linear_to_srgb(np.asarray(settings.background, np.float64)), DECODE,
-                   np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
+                   ENCODE, np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
                    image)
     stats["combine_ms"] = _ms(t)
     stats["splats_rendered"] = int(np.count_nonzero(visible))
@@ -343,8 +361,23 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     return image, out_depth, stats
 
 
+def blur_summed(table, blurs, offsets, color, trans, depth, filled) -> None:
+    """Each summed image (``IM_SUM``) blurred from its sharp view (``gauss.layers.blur_rows``,
+    ``blur_columns``), one after another through one scratch buffer; its tiles with any
+    coverage set in filled."""
+    summed = np.flatnonzero(table[:, IM_SUM])
+    if not len(summed):
+        return
+    source = table[summed, IM_SOURCE]
+    scratch = np.empty((int(table[source, IM_HEIGHT].max()), int(table[summed, IM_WIDTH].max()),
+                        N_BLUR), np.float32)
+    for i in summed:
+        blur_rows(table, blurs, i, offsets, color, trans, scratch)
+        blur_columns(table, blurs, i, scratch, color, trans, depth, filled)
+
+
 def project_plan(scene, views, campos, cameras, spans, table, share=None,
-                 antialiased: bool = False):
+                 antialiased: bool = False, sharp_eps2d: float = 0.04):
     """(rows (R, N_FIELDS) float32, boxes (R, 4) int32, visible (R,) bool): every projection
     of a ``layer_plan`` (``gauss.layers.project_layers``), each row on its image. share: the
     lens visibility (N,), or None."""
@@ -356,7 +389,7 @@ def project_plan(scene, views, campos, cameras, spans, table, share=None,
     visible = np.zeros(n_rows, np.bool_)
     project_layers(scene.positions, scene.scales, scene.rotations, scene.opacity, scene.sh,
                    NO_SHARE if share is None else share, views, campos, cameras, spans,
-                   antialiased, table, row_image, rows, boxes, visible)
+                   antialiased, sharp_eps2d, table, row_image, rows, boxes, visible)
     return rows, boxes, visible
 
 
@@ -364,9 +397,14 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
     """What ``draw_layered`` (and the GPU's) projects and composites for a frame of n
     Gaussians in ``layer_order``: (views (J, 4, 4), campos (J, 3), cameras (J, N_P), spans
     (J, 3) int64: the projections, each (first Gaussian, last, first row); table (I, N_IM):
-    the images; part_layers (K, L) int64: each part's images front to back, -1 after).
-    The sharp slab is projected once, from the lens centre with the whole lens's blur; the
-    other layers from each part's camera with the residual blur."""
+    the images; part_layers (K, L) int64: each part's images front to back, -1 after;
+    blurs (I,) float64: a summed image's blur, px of its sharp view, else 0). The sharp slab
+    is projected once, from the lens centre with the whole lens's blur; the other layers
+    from each part's camera with the residual blur, but a summed layer (``mark_summed``)
+    is two images: its sharp view (``IM_SHARP``, at 1/``sharp_scale`` the resolution or
+    ``sharp_fraction`` of its layer's scale, with a margin of what its blur carries in from
+    outside the frame) and its image (``IM_SUM``, blurred from the view at a pixel of at
+    most 1/``summed_alpha`` its blur)."""
     h, w = camera.height, camera.width
     n_sharp = int(layers.spans[layers.sharp, 1])
     n_rest = n - n_sharp
@@ -387,25 +425,47 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
     # part's list front to back
     summed = set(summed_layers(layers))
     images = [] if n_sharp == 0 else [(w, h, 1, 0, 0, n_sharp)]
+    blurs = [0.0] * len(images)
     part_layers = np.full((k, len(layers.scales)), -1, np.int64)
+    if len(layers.scales) > MAX_LAYERS:
+        raise ValueError(f"layer_plan: {len(layers.scales)} layers, at most {MAX_LAYERS}")
+    ss = LAYERS.sharp_scale
     for p in range(k):
         col = 0
         for j, scale in enumerate(layers.scales):
             a, b = layers.spans[j]
             if b == a:
                 continue
+            r0 = a + p * n_rest
             if j == layers.sharp:
                 part_layers[p, col] = 0
+            elif j in summed:
+                # its sharp view (margin: what the blur carries in from outside the frame),
+                # then its own image, blurred from that
+                vs = max(ss, 2 ** int(math.floor(math.log2(max(LAYERS.sharp_fraction * scale,
+                                                                1.0)))))
+                blur = max(layers.blur[j], 0.5)
+                sigma = blur / vs
+                vm = int(math.ceil(BLUR_REACH * sigma)) + 1
+                images.append((-(-w // vs) + 2 * vm, -(-h // vs) + 2 * vm, vs, vm, r0,
+                               r0 + b - a, False, True))
+                bs = min(scale, 2 ** int(math.floor(math.log2(max(blur / LAYERS.summed_alpha,
+                                                                  1.0)))))
+                images.append((-(-w // bs) + 2, -(-h // bs) + 2, bs, 1, r0 + b - a,
+                               r0 + b - a, True, False, len(images) - 1))
+                blurs += [0.0, sigma]
+                part_layers[p, col] = len(images) - 1
             else:
                 margin = 0 if scale == 1 else 1
-                r0 = a + p * n_rest
                 images.append((-(-w // scale) + 2 * margin, -(-h // scale) + 2 * margin, scale,
-                               margin, r0, r0 + b - a, j in summed))
+                               margin, r0, r0 + b - a))
+                blurs.append(0.0)
                 part_layers[p, col] = len(images) - 1
             col += 1
     return (np.stack([view_matrix(job[0]) for job in jobs]),
             np.array([job[0].eye for job in jobs], np.float64), cameras,
-            np.array([job[2:] for job in jobs], np.int64), image_table(images), part_layers)
+            np.array([job[2:] for job in jobs], np.int64), image_table(images), part_layers,
+            np.array(blurs, np.float64))
 
 
 def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,
@@ -511,8 +571,7 @@ def seen_in_view(scene, camera: Camera, settings: RenderSettings, eps2d: float =
 
 def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSettings,
                               views: int | None = None, scale: int | None = None, *,
-                              radius: float = 1.0, eps2d: float | None = None,
-                              raw: bool = False, floor: float = 0.0) -> np.ndarray:
+                              radius: float = 1.0, eps2d: float | None = None) -> np.ndarray:
     """(N,) float32 in [0, 1]: ``lens_visibility``'s shares, from one projection (views,
     scale: ``LAYERS.visibility_views`` and ``visibility_scale`` where None). The views from
     the lens's rim differ from the centre's by a shear (``lens_camera``: a point at depth z
@@ -524,9 +583,7 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     views' tiles are composited in one loop. Against ``lens_visibility`` from the same views
     the frame's PSNR against the lens reference was the same to 0.01 dB (playbot, 10 px).
     radius: the rim views at this fraction of the lens's radius; eps2d: their low-pass
-    (``LAYERS.visibility_eps2d`` where None); raw: each Gaussian's largest ``seen_share``
-    over the views, not ``lens_share`` of it (``layer_shares``' weights), 0 where below
-    floor."""
+    (``LAYERS.visibility_eps2d`` where None)."""
     views = LAYERS.visibility_views if views is None else views
     if scale is None:
         scale = visibility_scale_for(scene.positions, camera, lens, settings)
@@ -560,12 +617,9 @@ def lens_visibility_by_shifts(scene, camera: Camera, lens, settings: RenderSetti
     # (only seen is read: no empty tile is written)
     composite_images(view_rows, view_boxes, offsets, ids, tile_image, table,
                      np.zeros(len(tile_image), np.bool_), np.empty((n_px, 3), np.float32), np.empty(n_px, np.float32),
-                     np.empty(n_px, np.float32), seen)
+                     np.empty(n_px, np.float32), seen, DECODE)
     best = np.empty(n, np.float32)
-    if raw:
-        raw_view_shares(view_rows, view_visible, seen, n, floor, best)
-    else:
-        best_view_shares(view_rows, view_visible, seen, n, best)
+    best_view_shares(view_rows, view_visible, seen, n, best)
     return best
 
 

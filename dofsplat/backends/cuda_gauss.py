@@ -10,8 +10,9 @@ compiles the CPU's own functions again as device functions:
 
     project_gaussian (gauss/project.py, with sh_color), project_shifted_view and
     move_footprint; gaussian_alpha, blend, start_pixel, seen_share, lens_share,
-    best_view_share, finish_pixel with decode (gauss/composite.py);
-    project_layer_row, mark_live, layer_listed_over, layer_sample, over_pixel
+    best_view_share, linear_pixel, finish_pixel with decode and encode
+    (gauss/composite.py); project_layer_row, mark_live, layer_listed_over, layer_sample,
+    over_pixel, close_run, fold_runs, listed_span, blur_row_pixel, blur_column_pixel
     (gauss/layers.py)
 
 What is written here is only the parallel structure around them. Every pass is drawn as
@@ -34,9 +35,12 @@ layers of every lens part, the lens visibility's views), as the CPU's ``bin_imag
   live (``live_tiles``: one thread per tile) is left unwritten, as on the CPU; With lens visibility each pixel
   adds the alpha T it saw to its row's total (an atomic add, where the CPU keeps a row per
   thread: the shares differ by float rounding only);
+* a summed layer's image blurred from its sharp view (``blur_rows``, ``blur_columns``): one
+  launch of each per summed image, one thread per pixel;
 * the layers joined (``combine_layers``): one thread per pixel of the frame, each part's
-  layers front to back (``over_pixel``), a layer skipped where no tile its sample reads
-  lists a Gaussian (``layer_listed_over``), which changes nothing, as on the CPU.
+  layers front to back in runs (``over_pixel``, ``close_run``), a layer skipped where no
+  tile its sample reads holds anything (``layer_listed_over``, ``filled_tiles``), which
+  changes nothing, the runs folded back to front (``fold_runs``), as on the CPU.
 
 The LOD cut and the layer order are the CPU's (``cpu_gauss.in_layers``, ``lod_cut``): the
 Gaussians they gather are uploaded each frame. A scene drawn as it is (a pinhole, or no LOD
@@ -58,14 +62,15 @@ from numba import cuda
 
 from ..colors import linear_to_srgb
 from ..frame import RenderResult, coc_coefficients, lens_parts
-from ..gauss.composite import (DECODE, MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G, S_R, S_T,
-                               TILE, add, add_linear_part, best_view_share, blend,
-                               finish_linear_pixel, finish_pixel, finish_sum, floored,
-                               gaussian_alpha, lens_share, part_linear, raw_view_share,
-                               seen_share, start_pixel)
+from ..gauss.composite import (DECODE, ENCODE, MIN_TRANSMITTANCE, N_STATE, S_B, S_DEPTH, S_G,
+                               S_R, S_T, TILE, add_linear_part, best_view_share, blend,
+                               finish_linear_pixel, finish_pixel, gaussian_alpha, lens_share,
+                               linear_pixel, seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
-                            IM_SUM, IM_TILE0, IM_WIDTH, image_table, layer_listed_over,
-                            layer_sample, mark_live, over_pixel, project_layer_row)
+                            IM_SHARP, IM_SOURCE, IM_SUM, IM_TILE0, IM_WIDTH, MAX_LAYERS,
+                            blur_column_pixel, blur_row_pixel, close_run, fold_runs,
+                            image_table, layer_listed_over, layer_sample, listed_span,
+                            mark_live, over_pixel, project_layer_row)
 from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_OPACITY,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian,
                              project_shifted_view, view_matrix)
@@ -82,13 +87,9 @@ _project_shifted_view = device_twin(project_shifted_view)
 _project_layer_row = device_twin(project_layer_row)
 _gaussian_alpha = device_twin(gaussian_alpha)
 _blend = device_twin(blend)
-_add = device_twin(add)
-_finish_sum = device_twin(finish_sum)
-_part_linear = device_twin(part_linear)
+_linear_pixel = device_twin(linear_pixel)
 _add_linear_part = device_twin(add_linear_part)
 _finish_linear_pixel = device_twin(finish_linear_pixel)
-_raw_view_share = device_twin(raw_view_share)
-_floored = device_twin(floored)
 _start_pixel = device_twin(start_pixel)
 _seen_share = device_twin(seen_share)
 _lens_share = device_twin(lens_share)
@@ -98,6 +99,11 @@ _mark_live = device_twin(mark_live)
 _layer_listed_over = device_twin(layer_listed_over)
 _layer_sample = device_twin(layer_sample)
 _over_pixel = device_twin(over_pixel)
+_close_run = device_twin(close_run)
+_fold_runs = device_twin(fold_runs)
+_blur_row_pixel = device_twin(blur_row_pixel)
+_listed_span = device_twin(listed_span)
+_blur_column_pixel = device_twin(blur_column_pixel)
 
 PIXELS = TILE * TILE  # threads per block of the compositing: one per pixel of a tile
 INDEX_BITS = 32  # a sort key: the depth's bits above the row (or the row alone)
@@ -120,12 +126,13 @@ def _project(positions, scales, rotations, opacity, sh, view, campos, fx, fy, cx
 
 @cuda.jit
 def _project_layers(positions, scales, rotations, opacity, sh, share, views, campos, cameras,
-                    spans, antialiased, images, row_image, rows, boxes, visible):
+                    spans, antialiased, sharp_eps2d, images, row_image, rows, boxes, visible):
     """One thread per row: ``gauss.layers.project_layers``."""
     r = cuda.grid(1)
     if r < rows.shape[0]:
         _project_layer_row(r, positions, scales, rotations, opacity, sh, share, views, campos,
-                           cameras, spans, antialiased, images, row_image, rows, boxes, visible)
+                           cameras, spans, antialiased, sharp_eps2d, images, row_image, rows,
+                           boxes, visible)
 
 
 @cuda.jit
@@ -186,11 +193,12 @@ def _fill_keys(images, row_image, boxes, visible, depth_bits, by_depth, cursor, 
 
 @cuda.jit
 def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, trans, depth,
-               seen, track):
+               seen, track, lut):
     """One block per tile of any image, one thread per pixel: the tile's rows in key order,
     blended front to back (``gauss.layers.composite_images``, pixel by pixel) into color
-    (P, 3), trans (P,), depth (P,) from the image's IM_PIXEL0; an empty tile is written
-    (T = 1) only where live (T,) (``live_tiles``), or everywhere where live is (0,)."""
+    (P, 3), trans (P,), depth (P,) from the image's IM_PIXEL0 (a sharp view's in linear
+    light, ``linear_pixel`` with lut); an empty tile is written (T = 1) only where live
+    (T,) (``live_tiles``), or everywhere where live is (0,)."""
     batch = cuda.shared.array((PIXELS, N_FIELDS), numba.float32)
     box = cuda.shared.array((PIXELS, 4), numba.int32)
     gid = cuda.shared.array(PIXELS, numba.int32)
@@ -206,7 +214,6 @@ def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, tran
     py = (local // n_tx) * TILE + tid // TILE
     px = (local % n_tx) * TILE + tid % TILE
     inside = py < height and px < width
-    summed = images[i, IM_SUM] != 0
     _start_pixel(state, 0)
     done = not inside
     lo = offsets[t]
@@ -233,18 +240,15 @@ def _composite(rows, boxes, offsets, keys, tile_image, images, live, color, tran
                                     batch[b, F_CUT], px, py)
             if alpha == 0.0:
                 continue
-            if summed:
-                w = _add(state, 0, alpha, batch, b)
-            else:
-                w = _blend(state, 0, alpha, batch, b)
+            w = _blend(state, 0, alpha, batch, b)
             if w < 0.0:
                 done = True
             elif track:
                 cuda.atomic.add(seen, gid[b], w)
         cuda.syncthreads()
     if inside:
-        if summed:
-            _finish_sum(state, 0)
+        if images[i, IM_SHARP] != 0:
+            _linear_pixel(state, 0, lut)
         q = images[i, IM_PIXEL0] + py * width + px
         color[q, 0] = state[0, S_R]
         color[q, 1] = state[0, S_G]
@@ -262,16 +266,19 @@ def _live_tiles(offsets, images, tile_image, live):
 
 
 @cuda.jit
-def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, lut, out_color,
+def _combine_layers(images, filled, part_layers, color, trans, depth, bg, lut, enc, out_color,
                     out_trans, out_depth, image):
     """One thread per pixel of the frame: ``gauss.layers.combine_layers``, each part's layers
-    joined front to back (``over_pixel``), a layer none of whose tiles that the pixel's
-    sample reads lists a Gaussian skipped (it holds nothing there: ``layer_listed_over``),
-    each part over the background in linear light (``part_linear``), then the frame
-    (``finish_linear_pixel``)."""
+    joined front to back in runs (``over_pixel``, ``close_run``), a layer none of whose
+    tiles that the pixel's sample reads lists a Gaussian skipped (it holds nothing there:
+    ``layer_listed_over``), the runs back to front over the background in linear light
+    (``fold_runs``), then the frame (``finish_linear_pixel``)."""
     total = cuda.local.array((1, 4), numba.float64)  # linear r, g, b and T, over the parts
-    part = cuda.local.array((1, 3), numba.float64)  # a part's colour, the trainer's space
+    part = cuda.local.array((1, 3), numba.float64)  # a run's colour, in its space
+    runs = cuda.local.array((1, MAX_LAYERS, 4), numba.float64)
+    run_linear = cuda.local.array(MAX_LAYERS, numba.boolean)
     t_acc = cuda.local.array(1, numba.float64)
+    t_front = cuda.local.array(1, numba.float64)
     d = cuda.local.array(1, numba.float64)
     h, w = out_trans.shape
     g = cuda.grid(1)
@@ -287,27 +294,68 @@ def _combine_layers(images, offsets, part_layers, color, trans, depth, bg, lut, 
         for c in range(3):
             part[0, c] = 0.0
         t_acc[0] = 1.0
+        t_front[0] = 1.0
         d[0] = math.inf
+        n_runs = 0
         for j in range(part_layers.shape[1]):
             i = part_layers[k, j]
-            if i < 0 or t_acc[0] <= MIN_TRANSMITTANCE:
+            if i < 0:
                 break
-            if _layer_listed_over(images, offsets, i, x, y, x + 1, y + 1):
+            linear = images[i, IM_SUM] != 0
+            if n_runs == 0 or linear != run_linear[n_runs - 1]:
+                if n_runs > 0:
+                    _close_run(runs, n_runs - 1, part, t_acc, t_front, 0)
+                run_linear[n_runs] = linear
+                n_runs += 1
+            if t_acc[0] > MIN_TRANSMITTANCE and _layer_listed_over(images, filled, i, x, y,
+                                                                   x + 1, y + 1):
                 inv = 1.0 / images[i, IM_SCALE]
                 col, ax = _layer_sample(x, inv, images[i, IM_MARGIN])
                 row, ay = _layer_sample(y, inv, images[i, IM_MARGIN])
                 _over_pixel(images, i, color, trans, depth,
                             images[i, IM_PIXEL0] + row * images[i, IM_WIDTH] + col, ax, ay,
-                            part, t_acc, d, 0)
-        for c in range(3):
-            total[0, c] += _part_linear(part[0, c], t_acc[0], bg[c], lut)
-        total[0, 3] += t_acc[0]
+                            part, t_acc, t_front, d, 0)
+        _close_run(runs, n_runs - 1, part, t_acc, t_front, 0)
+        _fold_runs(runs, 0, n_runs, run_linear, bg, lut, enc, total)
+        total[0, 3] += t_front[0]
         d_min = min(d_min, d[0])
     for c in range(3):
         out_color[y, x, c] = total[0, c]
     out_trans[y, x] = total[0, 3]
     out_depth[y, x] = d_min
     _finish_linear_pixel(out_color, out_trans, y, x, 1.0 / k_parts, image)
+
+
+@cuda.jit
+def _blur_rows(images, blurs, i, offsets, color, trans, scratch):
+    """One thread per pixel of scratch (the sharp view's rows, image i's columns):
+    ``gauss.layers.blur_rows``."""
+    g = cuda.grid(1)
+    k = images[i, IM_SOURCE]
+    w_i = images[i, IM_WIDTH]
+    if g >= images[k, IM_HEIGHT] * w_i:
+        return
+    y = g // w_i
+    p0, p1 = _listed_span(images, offsets, k, y)
+    _blur_row_pixel(images, blurs, i, offsets, color, trans, scratch, y, g % w_i, p0, p1)
+
+
+@cuda.jit
+def _blur_columns(images, blurs, i, scratch, color, trans, depth, filled):
+    """One thread per pixel of image i: ``gauss.layers.blur_columns``."""
+    g = cuda.grid(1)
+    w_i = images[i, IM_WIDTH]
+    if g < images[i, IM_HEIGHT] * w_i:
+        _blur_column_pixel(images, blurs, i, scratch, color, trans, depth, filled, g // w_i,
+                           g % w_i)
+
+
+@cuda.jit
+def _filled_tiles(offsets, filled):
+    """One thread per tile: ``gauss.layers.filled_tiles``."""
+    t = cuda.grid(1)
+    if t < filled.shape[0]:
+        filled[t] = offsets[t + 1] > offsets[t]
 
 
 @cuda.jit
@@ -362,24 +410,22 @@ def _best_view_shares(rows, visible, seen, n, best):
         best[i] = _best_view_share(rows, visible, seen, n, i)
 
 
-@cuda.jit
-def _raw_view_shares(rows, visible, seen, n, floor, out):
-    """One thread per Gaussian: ``gauss.composite.raw_view_shares`` (seen: (1, V n))."""
-    i = cuda.grid(1)
-    if i < n:
-        out[i] = _floored(_raw_view_share(rows, visible, seen, n, i), floor)
-
-
 # -- the stages on the host -------------------------------------------------------------------
 
-_DECODE = []  # composite.DECODE on the GPU, uploaded once
+_DECODE = {}  # the colour tables on the GPU, uploaded once (``_coded``)
 
 
 def _decode():
     """``gauss.composite.DECODE`` (the sRGB decoding table) on the GPU."""
-    if not _DECODE:
-        _DECODE.append(_upload(DECODE))
-    return _DECODE[0]
+    return _coded(DECODE)
+
+
+def _coded(table: np.ndarray):
+    """A colour table (``gauss.composite.DECODE``, ``ENCODE``) on the GPU, uploaded once."""
+    key = id(table)
+    if key not in _DECODE:
+        _DECODE[key] = _upload(table)
+    return _DECODE[key]
 
 
 
@@ -520,7 +566,7 @@ def composite_cuda(rows, boxes, offsets, keys, images: DeviceImages, prefix: str
     if images.n_tiles:
         _composite[images.n_tiles, PIXELS](rows, boxes, offsets, keys, images.tile_image,
                                            images.table, live, color, trans, depth, seen,
-                                           track)
+                                           track, _decode())
     return color, trans, depth
 
 
@@ -585,19 +631,22 @@ def lens_visibility_cuda(arrays: dict, camera, lens, settings, views: int = 6, s
 
 
 def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens, settings):
-    """(N,) float32 on the GPU: ``cpu_gauss.layer_shares``, each blurred layer's weights from
-    its own views (``lens_visibility_by_shifts_cuda`` on its run of the arrays)."""
+    """(N,) float32 on the GPU, or None: ``cpu_gauss.layer_shares``, each blurred layer's that
+    is not summed weighed from its own views (``lens_visibility_by_shifts_cuda`` on its run of
+    the arrays)."""
+    weighed = [j for j in blurred_layers(layers) if not layers.summed[j]]
+    if not weighed:
+        return None
     n = len(positions)
     share = _WS.get("g.layer_share", (n,), np.float32)
     _fill[_blocks(n), THREADS](share, 1.0)
     ls = cpu_gauss.LAYERS
-    for j in blurred_layers(layers):
+    for j in weighed:
         a, b = (int(v) for v in layers.spans[j])
         sub = {key: value[a:b] for key, value in arrays.items()}
         lens_visibility_by_shifts_cuda(sub, positions[a:b], camera, lens, settings,
                                        ls.share_scale, views=ls.share_views,
                                        radius=ls.share_radius, eps2d=ls.share_eps2d,
-                                       raw=bool(layers.summed[j]), floor=ls.share_floor,
                                        out=share[a:b])
     return share
 
@@ -605,8 +654,7 @@ def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens,
 def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, lens,
                                    settings, scale: int | None = None, *,
                                    views: int | None = None, radius: float = 1.0,
-                                   eps2d: float | None = None, raw: bool = False,
-                                   floor: float = 0.0, out=None) -> object:
+                                   eps2d: float | None = None, out=None) -> object:
     """(N,) float32 on the GPU: ``cpu_gauss.lens_visibility_by_shifts`` (positions: the
     frame's Gaussians' (N, 3), on the host; the same keywords), from the same views: one
     projection moved to each view, every view's tiles composited in one launch, seen sums
@@ -645,12 +693,8 @@ def lens_visibility_by_shifts_cuda(arrays: dict, positions: np.ndarray, camera, 
     no_tile = _WS.get("g.no_tile", (images.n_tiles,), np.bool_)  # only seen is read
     _fill[_blocks(images.n_tiles), THREADS](no_tile, False)
     composite_cuda(view_rows, view_boxes, offsets, keys, images, "g.small", seen, no_tile)
-    if raw:
-        _raw_view_shares[_blocks(n), THREADS](view_rows, view_visible, seen.reshape(1, m * n),
-                                              n, floor, best)
-    else:
-        _best_view_shares[_blocks(n), THREADS](view_rows, view_visible,
-                                               seen.reshape(1, m * n), n, best)
+    _best_view_shares[_blocks(n), THREADS](view_rows, view_visible, seen.reshape(1, m * n), n,
+                                           best)
     return best
 
 
@@ -660,8 +704,8 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
     image's tiles in one, the layers joined in one; share: the lens visibility (N,), or None."""
     h, w = camera.height, camera.width
     n = arrays["positions"].shape[0]
-    views, campos, cameras, spans, table, part_layers = layer_plan(n, layers, camera, lens,
-                                                                   parts, settings)
+    views, campos, cameras, spans, table, part_layers, blurs = layer_plan(n, layers, camera,
+                                                                          lens, parts, settings)
     image = _WS.get("g.image", (h, w, 4), np.float32)
     out_depth = _WS.get("g.out.depth", (h, w), np.float32)
     bg = _upload(linear_to_srgb(np.asarray(settings.background, np.float64)))
@@ -685,16 +729,31 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
         _project_layers[_blocks(n_rows), THREADS](
             arrays["positions"], arrays["scales"], arrays["rotations"], arrays["opacity"],
             arrays["sh"], share, _upload(views), _upload(campos), _upload(cameras),
-            _upload(spans), bool(settings.gaussian_antialiased), images.table,
-            images.row_image, rows, boxes, visible)
+            _upload(spans), bool(settings.gaussian_antialiased), cpu_gauss.LAYERS.sharp_eps2d,
+            images.table, images.row_image, rows, boxes, visible)
     offsets, keys, totals = bin_cuda(images, rows, boxes, visible, by_depth=False)
     live = _WS.get("g.live", (images.n_tiles,), np.bool_)
     _fill[_blocks(images.n_tiles), THREADS](live, False)
     _live_tiles[_blocks(images.n_tiles), THREADS](offsets, images.table, images.tile_image,
                                                   live)
     color, trans, depth = composite_cuda(rows, boxes, offsets, keys, images, live=live)
+    filled = _WS.get("g.filled", (images.n_tiles,), np.bool_)
+    _filled_tiles[_blocks(images.n_tiles), THREADS](offsets, filled)
+    summed = np.flatnonzero(table[:, IM_SUM])
+    if len(summed):  # each summed image blurred from its sharp view, through one scratch
+        source = table[summed, IM_SOURCE]
+        scratch = _WS.get("g.blur", (int(table[source, IM_HEIGHT].max()),
+                                     int(table[summed, IM_WIDTH].max()), 4), np.float32)
+        device_blurs = _upload(blurs)
+        for i in summed:
+            k = table[i, IM_SOURCE]
+            _blur_rows[_blocks(int(table[k, IM_HEIGHT] * table[i, IM_WIDTH])), THREADS](
+                images.table, device_blurs, int(i), offsets, color, trans, scratch)
+            _blur_columns[_blocks(int(table[i, IM_HEIGHT] * table[i, IM_WIDTH])), THREADS](
+                images.table, device_blurs, int(i), scratch, color, trans, depth, filled)
     _combine_layers[_blocks(h * w), THREADS](
-        images.table, offsets, _upload(part_layers), color, trans, depth, bg, _decode(),
+        images.table, filled, _upload(part_layers), color, trans, depth, bg, _decode(),
+        _coded(ENCODE),
         _WS.get("g.out.color", (h, w, 3), np.float32), _WS.get("g.out.trans", (h, w), np.float32),
         out_depth, image)
     stats = dict(zip(("tile_pairs", "splats_rendered", "fragments"), totals))

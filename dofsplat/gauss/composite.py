@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from ..colors import srgb_to_linear
+from ..colors import linear_to_srgb, srgb_to_linear
 from ..jit import numba
 from .project import (F_B, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_G, F_OPACITY, F_R, F_X, F_Y,
                       MAX_ALPHA)
@@ -112,37 +112,6 @@ def blend(state, p, alpha, rows, g):
     return w
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def add(state, p, alpha, rows, g):
-    """Row g's Gaussian, at this alpha, *added* to pixel p's state (a summed layer,
-    ``gauss/layers.py``: no order, no "over"): colour alpha c added and S_T, here 1 minus
-    the alpha summed, lowered by alpha (it may fall below 0: ``finish_sum`` clamps); the
-    depth where S_T first falls to 1/2. Returns alpha."""
-    t_before = state[p, S_T]
-    state[p, S_R] += alpha * rows[g, F_R]
-    state[p, S_G] += alpha * rows[g, F_G]
-    state[p, S_B] += alpha * rows[g, F_B]
-    next_trans = t_before - alpha
-    if next_trans <= MEDIAN_TRANSMITTANCE < t_before:
-        state[p, S_DEPTH] = rows[g, F_DEPTH]
-    state[p, S_T] = next_trans
-    return alpha
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def finish_sum(state, p):
-    """A summed pixel's coverage clamped at 1: where its alpha summed (1 - S_T) exceeds 1,
-    the colour is scaled by 1 / that sum (the mean colour of what was added, fully opaque)
-    and S_T is 0."""
-    total = 1.0 - state[p, S_T]
-    if total > 1.0:
-        inv = 1.0 / total
-        state[p, S_R] *= inv
-        state[p, S_G] *= inv
-        state[p, S_B] *= inv
-        state[p, S_T] = 0.0
-
-
 @numba.njit(cache=True, nogil=True, parallel=True)
 def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, transmittance,
                     depth, seen):
@@ -163,7 +132,7 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
         state = np.empty((tw * (ty1 - ty0), N_STATE), np.float64)
         done = np.empty(tw * (ty1 - ty0), np.bool_)
         blend_tile(rows, boxes, ids, offsets[t], offsets[t + 1], tx0, ty0, tx1, ty1, state,
-                   done, seen, tid, False)
+                   done, seen, tid)
         for py in range(ty0, ty1):
             for px in range(tx0, tx1):
                 p = (py - ty0) * tw + (px - tx0)
@@ -175,12 +144,10 @@ def composite_tiles(rows, boxes, offsets, ids, n_tx, width, height, color, trans
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, tid,
-               summed):
+def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, tid):
     """One tile's pixels [tx0, tx1) x [ty0, ty1) blended front to back from its list
     ids[k0:k1] into state (a row per pixel, row by row; ``start_pixel`` first), done a flag
-    per pixel; seen: ``composite_tiles``'s (thread tid's row), or (0, 0). summed: each
-    Gaussian added (``add``, then ``finish_sum``), not blended: no pixel is ever done.
+    per pixel; seen: ``composite_tiles``'s (thread tid's row), or (0, 0).
 
     Gaussian by Gaussian, over the pixels of its box within the tile only (a tile's list
     holds many Gaussians that reach a few of its pixels); each pixel's blend is the one of
@@ -226,16 +193,12 @@ def blend_tile(rows, boxes, ids, k0, k1, tx0, ty0, tx1, ty1, state, done, seen, 
                 alpha = gaussian_alpha(mx, my, ca, cb, cc, opacity, cut, px, py)
                 if alpha == 0.0:
                     continue
-                w = add(state, p, alpha, rows, g) if summed else blend(state, p, alpha,
-                                                                        rows, g)
+                w = blend(state, p, alpha, rows, g)
                 if w < 0.0:
                     done[p] = True
                     n_done += 1
                 elif track:
                     seen[tid, g] += w
-    if summed:
-        for p in range(n_px):
-            finish_sum(state, p)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -293,7 +256,7 @@ def best_view_share(rows, visible, seen, n, i):
 @numba.njit(cache=True, nogil=True, inline="always")
 def raw_view_share(rows, visible, seen, n, i):
     """Gaussian i's largest ``seen_share`` over the stacked views of ``best_view_shares``
-    (which see), before ``lens_share``: the per-Gaussian maths of ``raw_view_shares``."""
+    (which see), before ``lens_share``."""
     n_views = rows.shape[0] // max(n, 1)
     share = 0.0
     for v in range(n_views):
@@ -304,20 +267,6 @@ def raw_view_share(rows, visible, seen, n, i):
                 total += seen[t, r]
             share = max(share, seen_share(rows, r, total))
     return share
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def raw_view_shares(rows, visible, seen, n, floor, out):
-    """out[i] = ``raw_view_share`` of Gaussian i (``best_view_shares``'s arguments), 0 where
-    below floor: a summed layer's weights (``backends.cpu_gauss.layer_shares``)."""
-    for i in numba.prange(n):
-        out[i] = floored(raw_view_share(rows, visible, seen, n, i), floor)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def floored(share, floor):
-    """share, or 0 where it is below floor (a Gaussian that is not drawn)."""
-    return share if share >= floor else 0.0
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -349,6 +298,39 @@ def decode(x, lut):
     f = x * (lut.shape[0] - 1)
     i = min(int(f), lut.shape[0] - 2)
     return lut[i] + (f - i) * (lut[i + 1] - lut[i])
+
+
+def encode_table() -> np.ndarray:
+    """(DECODE_STEPS + 1,) float64: ``colors.linear_to_srgb`` of u^2 at DECODE_STEPS + 1 even
+    steps of u in [0, 1], for ``encode`` (in the square root the curve is nearly straight:
+    linear between the steps, within 3e-7 of it)."""
+    return linear_to_srgb(np.linspace(0.0, 1.0, DECODE_STEPS + 1) ** 2)
+
+
+ENCODE = encode_table()
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def encode(x, lut):
+    """``colors.linear_to_srgb`` of one value x in [0, 1], for the kernels (and their CUDA
+    twins): linear between the steps of lut (``ENCODE``, ``encode_table``) in sqrt(x)."""
+    f = math.sqrt(x) * (lut.shape[0] - 1)
+    i = min(int(f), lut.shape[0] - 2)
+    return lut[i] + (f - i) * (lut[i + 1] - lut[i])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def linear_pixel(state, p, lut):
+    """Pixel p's blend (``blend``: colour in the trainer's space, premultiplied by its
+    coverage 1 - T) in linear light: its mean colour (the colour over the coverage),
+    clipped to [0, 1] and decoded (``decode`` with lut), times the coverage; none where
+    the coverage is under 1e-7 (a summed layer's sharp view, ``gauss/layers.py``)."""
+    a = 1.0 - state[p, S_T]
+    for c in range(S_R, S_B + 1):
+        if a > 1e-7:
+            state[p, c] = decode(min(max(state[p, c] / a, 0.0), 1.0), lut) * a
+        else:
+            state[p, c] = 0.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

@@ -144,22 +144,59 @@ def composite(footprints, width, height):
     return colour, trans
 
 
-def composite_summed(footprints, width, height, weights):
-    """(colour (H, W, 3), transmittance (H, W)) of projected footprints added, each times
-    its weight (a summed layer: opacity and cut both scaled, then the trainers' skip and
-    clamp), every pixel's coverage clamped at 1 (its colour then divided by the coverage)."""
-    colour = np.zeros((height, width, 3))
-    cover = np.zeros((height, width))
-    for (mean, _, conic, o, cut, rgb), w in zip(footprints, weights):
-        o, cut = o * w, cut * w
-        for py in range(height):
-            for px in range(width):
-                alpha = footprint_alpha(mean, conic, o, cut, px, py)
-                colour[py, px] += alpha * rgb
-                cover[py, px] += alpha
-    over = cover > 1.0
-    colour[over] /= cover[over][:, None]
-    return colour, 1.0 - np.minimum(cover, 1.0)
+def blurred(channels, source, image, sigma):
+    """(h, w, C): a summed layer's image blurred from its sharp view's channels (H, W, C):
+    the Gaussian of standard deviation sigma (the view's pixels) sampled at the image's
+    pixel centres, cut at 3 sigma and normalised over every tap, inside the view or not
+    (outside it there is nothing).
+    source, image: (scale, margin) of the view and of the image (w, h, scale, margin); a
+    pixel x of the image is centred on full-resolution point (x - margin + 1/2) scale."""
+    s_k, m_k = source
+    w, h, s_i, m_i = image
+
+    def weights(n_out, n_in):
+        u = (np.arange(n_out) - m_i + 0.5) * s_i / s_k + m_k - 0.5
+        out = np.zeros((n_out, n_in))
+        for x, centre in enumerate(u):
+            taps = np.arange(math.ceil(centre - 3 * sigma), math.floor(centre + 3 * sigma) + 1)
+            wt = np.exp(-0.5 * ((taps - centre) / sigma) ** 2)
+            inside = (taps >= 0) & (taps < n_in)
+            out[x, taps[inside]] = wt[inside] / wt.sum()
+        return out
+
+    wy, wx = weights(h, channels.shape[0]), weights(w, channels.shape[1])
+    return np.stack([wy @ channels[..., c] @ wx.T for c in range(channels.shape[2])], -1)
+
+
+def srgb_decode(x):
+    """sRGB to linear, written out (``colors.srgb_to_linear``'s curve)."""
+    x = np.asarray(x, np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def srgb_encode(x):
+    """Linear to sRGB, written out."""
+    x = np.asarray(x, np.float64)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0) ** (1 / 2.4) - 0.055)
+
+
+def join(layers, background):
+    """A part's layers joined back to front over background (3,) (sRGB), layer by layer:
+    layers, front to back, (colour (H, W, 3), T (H, W), linear): a summed layer's colour is
+    linear light and joins there (colour + T behind); another's is sRGB and joins there
+    (colour + T encode(behind), clipped to [0, 1], decoded). Returns (linear colour (H, W,
+    3), the product of the T)."""
+    colour, t = layers[0][:2]
+    behind = np.broadcast_to(srgb_decode(background), colour.shape).astype(np.float64)
+    t_all = np.ones(t.shape)
+    for colour, t, linear in reversed(layers):
+        if linear:
+            behind = colour + t[..., None] * np.clip(behind, 0.0, 1.0)
+        else:
+            behind = srgb_decode(np.clip(colour + t[..., None] * srgb_encode(
+                np.clip(behind, 0.0, 1.0)), 0.0, 1.0))
+        t_all = t_all * t
+    return np.clip(behind, 0.0, 1.0), t_all
 
 
 def select_cut(tree, view, fx, near, coc_k, inv_focus, blur_variance, fraction) -> np.ndarray:
