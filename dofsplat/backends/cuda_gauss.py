@@ -297,18 +297,21 @@ def _combine_layers(images, filled, part_layers, color, trans, depth, bg, lut, e
         t_front[0] = 1.0
         d[0] = math.inf
         n_runs = 0
+        drawn = False
         for j in range(part_layers.shape[1]):
             i = part_layers[k, j]
             if i < 0:
                 break
             linear = images[i, IM_SUM] != 0
-            if n_runs == 0 or linear != run_linear[n_runs - 1]:
+            if n_runs == 0 or (linear != run_linear[n_runs - 1] and drawn):
                 if n_runs > 0:
                     _close_run(runs, n_runs - 1, part, t_acc, t_front, 0)
-                run_linear[n_runs] = linear
                 n_runs += 1
+                drawn = False
+            run_linear[n_runs - 1] = linear
             if t_acc[0] > MIN_TRANSMITTANCE and _layer_listed_over(images, filled, i, x, y,
                                                                    x + 1, y + 1):
+                drawn = True
                 inv = 1.0 / images[i, IM_SCALE]
                 col, ax = _layer_sample(x, inv, images[i, IM_MARGIN])
                 row, ay = _layer_sample(y, inv, images[i, IM_MARGIN])

@@ -344,12 +344,21 @@ def blur_taps(x, i, k, images, sigma):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def first_weight(lo, u, sigma):
+    """(w, ratio, step): the Gaussian's weight e^(-d^2 / 2 sigma^2) at tap lo (d = lo - u),
+    the ratio of the next tap's to it and that ratio's own ratio from tap to tap: the taps'
+    weights by two products each (w *= ratio; ratio *= step), three exponentials a pixel."""
+    a2 = 0.5 / (sigma * sigma)
+    d = lo - u
+    return math.exp(-a2 * d * d), math.exp(-a2 * (2.0 * d + 1.0)), math.exp(-2.0 * a2)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def blur_row_pixel(images, blurs, i, offsets, color, transmittance, scratch, y, x, p0, p1):
     """``blur_rows`` at row y of the sharp view, column x of image i: the per-pixel maths
-    that the CUDA backend compiles as a device function too. The weights e^(-d^2 / 2
-    sigma^2), by their ratios from tap to tap (three exponentials a pixel), are normalised
-    over every tap, inside the view or not, listed or not: where nothing is listed there is
-    nothing (p0, p1: the row's ``listed_span``)."""
+    that the CUDA backend compiles as a device function too. The weights (``first_weight``)
+    are normalised over every tap, inside the view or not, listed or not: where nothing is
+    listed there is nothing (p0, p1: the row's ``listed_span``)."""
     k = images[i, IM_SOURCE]
     sigma = blurs[i]
     u, lo, hi = blur_taps(x, i, k, images, sigma)
@@ -360,11 +369,7 @@ def blur_row_pixel(images, blurs, i, offsets, color, transmittance, scratch, y, 
     w_k = images[k, IM_WIDTH]
     base = images[k, IM_PIXEL0] + y * w_k
     t_row = images[k, IM_TILE0] + (y // TILE) * (-(-w_k // TILE))
-    a2 = 0.5 / (sigma * sigma)
-    d = lo - u
-    wt = math.exp(-a2 * d * d)
-    ratio = math.exp(-a2 * (2.0 * d + 1.0))
-    step = math.exp(-2.0 * a2)
+    wt, ratio, step = first_weight(lo, u, sigma)
     r = g = b = a = norm = 0.0
     for t in range(lo, hi + 1):
         norm += wt
@@ -405,11 +410,7 @@ def blur_column_pixel(images, blurs, i, scratch, color, transmittance, depth, fi
     sigma = blurs[i]
     v, lo, hi = blur_taps(y, i, k, images, sigma)
     h_k = images[k, IM_HEIGHT]
-    a2 = 0.5 / (sigma * sigma)
-    d = lo - v
-    wt = math.exp(-a2 * d * d)
-    ratio = math.exp(-a2 * (2.0 * d + 1.0))
-    step = math.exp(-2.0 * a2)
+    wt, ratio, step = first_weight(lo, v, sigma)
     r = g = b = a = norm = 0.0
     for t in range(lo, hi + 1):
         norm += wt
@@ -569,7 +570,9 @@ def combine_layers(images, filled, part_layers, color, transmittance, depth, bac
     runs then back to front over the background, each in its own space (``fold_runs``:
     encoded with enc, ``composite.ENCODE``, or decoded at each change), so that where a
     blurred layer half covers what is behind it the two mix in linear light, as the lens
-    reference's views do. With no summed layer that is one run: ``part_linear``.
+    reference's views do. With no summed layer that is one run: ``part_linear``. A run that
+    holds nothing in the tile takes the next layer's space instead of closing (an empty run
+    changes nothing: ``fold_runs``), as a pixel's own loop on the GPU does for the pixel.
 
     By 16 x 16 tiles of the frame: a layer none of whose tiles that the tile reads lists a
     Gaussian (``layer_listed_over``) is skipped (empty: T = 1, no colour), and a part stops
@@ -602,22 +605,24 @@ def combine_layers(images, filled, part_layers, color, transmittance, depth, bac
             d[:] = math.inf
             n_done = 0
             n_runs = 0
+            drawn = False  # whether the run holds anything (else it takes the next's space)
             for j in range(part_layers.shape[1]):
                 i = part_layers[k, j]
                 if i < 0:
                     break
                 linear = images[i, IM_SUM] != 0
-                if n_runs == 0 or linear != run_linear[n_runs - 1]:
+                if n_runs == 0 or (linear != run_linear[n_runs - 1] and drawn):
                     if n_runs > 0:
                         n_done = 0
                         for p in range(n_px):
                             n_done += close_run(runs, n_runs - 1, part, t_acc, t_front, p)
-                    run_linear[n_runs] = linear
                     n_runs += 1
-                # (a done pixel's runs go on, empty, as a pixel's own loop's on the GPU)
+                    drawn = False
+                run_linear[n_runs - 1] = linear
                 if n_done < n_px and layer_listed_over(images, filled, i, x0, y0, x1, y1):
                     n_done += over_layer(images, i, color, transmittance, depth, x0, y0, x1,
                                          y1, cols, fracs, part, t_acc, t_front, d)
+                    drawn = True
             for p in range(n_px):
                 close_run(runs, n_runs - 1, part, t_acc, t_front, p)
                 fold_runs(runs, p, n_runs, run_linear, background, lut, enc, total)
@@ -660,10 +665,16 @@ def fold_runs(runs, p, n_runs, run_linear, bg, lut, enc, total):
     clipped to [0, 1] and decoded (lut) or encoded (enc) where the space changes: with one
     run in the trainer's space, ``part_linear``'s. An empty run (T = 1, no colour) is
     passed over: most of a pixel's are, and the tables' round trip would only add their
-    error."""
+    error; behind a run where the pixel is done (T <= MIN_TRANSMITTANCE) the background is,
+    as a pixel's blend stops there, so that how many runs follow it does not matter."""
     r_, g_, b_ = bg[0], bg[1], bg[2]
+    start = n_runs - 1
+    for r in range(n_runs):
+        if runs[p, r, 3] <= MIN_TRANSMITTANCE:  # the pixel is done here: the background next
+            start = r
+            break
     encoded = True
-    for r in range(n_runs - 1, -1, -1):
+    for r in range(start, -1, -1):
         t = runs[p, r, 3]
         if t == 1.0 and runs[p, r, 0] == 0.0 and runs[p, r, 1] == 0.0 and runs[p, r, 2] == 0.0:
             continue
