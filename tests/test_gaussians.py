@@ -525,6 +525,36 @@ def test_coarse_layers_stay_near_the_parts_drawn_whole():
     assert psnr(image, whole) > 38.0
 
 
+def test_a_summed_layers_sharp_view_is_bounded_at_any_blur():
+    """Memory stays bounded at any blur: a summed layer's sharp view (``IM_SHARP``) has a
+    margin of 3 blurs of its own pixels, and is drawn coarser where its blur would pass
+    ``LayerSettings.sharp_max_blur`` of them, so its size stays within the frame's at 1/2
+    the resolution plus 2 (3 x 8 + 1) pixels a side: here a circle of confusion of about
+    1,300 px, where 1/2 the resolution would need a margin of 500."""
+    from dofsplat.backends import cpu_gauss as cg
+    from dofsplat.frame import lens_parts
+    from dofsplat.gauss.layers import IM_HEIGHT, IM_MARGIN, IM_SHARP, IM_SUM, IM_WIDTH
+
+    g = dark_sheet()
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40,
+                    near=0.01)
+    lens = ds.ThinLens(focus_distance=8.0, aperture=100.0)
+    assert lens.coc_radius_px(3.0, cam) > 1000
+    st = ds.RenderSettings(gaussian_lod=False)
+    parts = lens_parts(cam, lens, dataclasses.replace(st, lens_samples=4))
+    arrays, layers = cg.in_layers(g, cam, lens, parts, st, False)
+    table, blurs = cg.layer_plan(len(arrays), layers, cam, lens, parts, st)[4::2]
+    sharp = table[table[:, IM_SHARP] == 1]
+    assert len(sharp) == 4 and table[:, IM_SUM].sum() == 4  # the sheet, summed, per part
+    limit = 3 * cg.LayerSettings().sharp_max_blur + 1  # (the default)
+    assert (sharp[:, IM_MARGIN] <= limit).all()
+    assert (sharp[:, IM_WIDTH] <= 48 + 2 * limit).all()
+    assert (sharp[:, IM_HEIGHT] <= 48 + 2 * limit).all()
+    assert blurs.max() <= cg.LayerSettings().sharp_max_blur
+    frame = ds.render(g, cam, lens, st).image
+    assert np.isfinite(frame).all() and 0.0 < frame[..., 3].max() < 0.2  # spread thin
+
+
 def test_layers_never_read_an_unwritten_tile():
     """``composite_images`` leaves an empty tile that is not live unwritten, and
     ``combine_layers`` must then never read it (``layer_listed_over``: a sample's taps span

@@ -71,6 +71,7 @@ class LayerSettings:
     summed_ratio: float = 1.0  # a blurred layer is summed where a part's blur is at least this x its Gaussians' footprints (the median; ``mark_summed``): 0 (every blurred layer summed) cost the fruit at 10 px 14.7 dB over black at 320 x 240, the others within 0.9 dB (stop 61, 64-sample references)
     sharp_scale: int = 2  # a summed layer is drawn alone and sharp at 1/this the resolution (its "sharp view"; the prototype, stop 60: 1/4 lost up to 4.2 dB, full resolution up to 1.5) ...
     sharp_fraction: float = 0.25  # ... or at 1/(this x its layer's scale) where coarser, a power of 2 (0.5: the donut at 10 px -1.9 dB over black, 320 x 240; 0.25: -0.5..+0.6 dB there, the guitar's 35 px frame at 1920 x 1080 0.88 x the time)
+    sharp_max_blur: float = 8.0  # ... and coarser still where its blur would be more than this many of its pixels (so that its margin, 3 blurs, stays bounded at any blur; no 35 px frame of the bench reaches it)
     sharp_eps2d: float = 0.04  # ... with this low-pass, px^2 of its pixels (0.3 lost 0.5-6 dB in the prototype)
     summed_alpha: float = 1.0  # ... then blurred onto its image, whose pixel is at most 1/this x the blur, a power of 2 below its layer's scale (a blurred edge is sampled, where the layers' alpha is for footprints at least that wide: 0.35 scored -3.2..+0.9 dB at 320 x 240, the donut at 10 px -3.2 over black, playbot at 10 px +0.8)
     blur_quantile: float = 0.5  # ... by a Gaussian of this quantile of its Gaussians' blur (a part's sigma; 0.25: -0.3..+0.8 dB at 320 x 240)
@@ -442,9 +443,10 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
             elif j in summed:
                 # its sharp view (margin: what the blur carries in from outside the frame),
                 # then its own image, blurred from that
-                vs = max(ss, 2 ** int(math.floor(math.log2(max(LAYERS.sharp_fraction * scale,
-                                                                1.0)))))
                 blur = max(layers.blur[j], 0.5)
+                vs = max(ss, 2 ** int(math.floor(math.log2(max(LAYERS.sharp_fraction * scale,
+                                                                1.0)))),
+                         2 ** int(math.ceil(math.log2(max(blur / LAYERS.sharp_max_blur, 1.0)))))
                 sigma = blur / vs
                 vm = int(math.ceil(BLUR_REACH * sigma)) + 1
                 images.append((-(-w // vs) + 2 * vm, -(-h // vs) + 2 * vm, vs, vm, r0,
