@@ -562,7 +562,7 @@ def test_layers_never_read_an_unwritten_tile():
     filled with NaN before compositing: the frame has no NaN and is the frame from images
     whose every tile is written, bit for bit; a summed layer's blur reads only its sharp
     view's listed tiles (``blur_rows``). A sparse scene on a wide frame, so that most tiles
-    of every layer's image are not live, at every scale from 1 to 1/16."""
+    of every layer's image are not live, at scales from 1 to 1/8 and more."""
     from dofsplat.backends import cpu_gauss as cg
     from dofsplat.colors import linear_to_srgb
     from dofsplat.frame import lens_parts

@@ -447,13 +447,15 @@ def filled_tiles(offsets, filled):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def layer_listed_over(images, filled, i, x0, y0, x1, y1):
-    """Whether image i lists a Gaussian in a tile that full-resolution pixels [x0, x1) x
-    [y0, y1) read (``over_layer``: both taps of each sample along an axis, at scale 1 the
-    pixel itself). Where none does, every pixel they read is empty (T = 1, no colour), so
-    the layer is skipped. Where one does, every tile they read is a ``live_tiles`` one, so
-    was written (``composite_images``): a frame tile's samples of a coarse image, like one
-    pixel's two taps, span at most two of its tiles along an axis, each then the listed
-    tile or its neighbour; at scale 1 the frame's tile is the image's."""
+    """Whether image i holds anything (``filled``: a tile that lists a Gaussian, or a summed
+    image's tile with any coverage, ``filled_tiles``) in a tile that full-resolution pixels
+    [x0, x1) x [y0, y1) read (``over_layer``: both taps of each sample along an axis, at
+    scale 1 the pixel itself). Where none does, every pixel they read is empty (T = 1, no
+    colour), so the layer is skipped. Where one does, every tile they read was written: a
+    summed image's every tile (``blur_columns``), another's ``live_tiles``
+    (``composite_images``): a frame tile's samples of a coarse image, like one pixel's two
+    taps, span at most two of its tiles along an axis, each then the listed tile or its
+    neighbour; at scale 1 the frame's tile is the image's."""
     s = images[i, IM_SCALE]
     m = images[i, IM_MARGIN]
     n_tx = -(-images[i, IM_WIDTH] // TILE)
