@@ -34,8 +34,7 @@ from ..gauss.composite import (DECODE, ENCODE, TILE, add_linear_parts, best_view
 from ..gauss.layers import (BLUR_REACH, IM_HEIGHT, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SOURCE,
                             IM_SUM, IM_WIDTH, MAX_LAYERS, N_BLUR, N_P, P_BLUR_VARIANCE,
                             P_COC_K, P_CX, P_CY, P_FX, P_FY, P_HEIGHT, P_INV_FOCUS, P_NEAR,
-                            P_WIDTH,
-                            bin_images, blur_columns, blur_rows, combine_layers,
+                            P_WIDTH, bin_images, blur_columns, blur_rows, combine_layers,
                             composite_images, filled_tiles, image_table, layer_keys,
                             live_tiles, project_layers)
 from ..gauss.project import (BLUR_NONE, BLUR_OURS, BLUR_VIEWERS, EPS2D, N_FIELDS, intrinsics,
@@ -70,7 +69,7 @@ class LayerSettings:
     summed_level: int = 1  # layers of this level and coarser (a part's blur sigma >= alpha 2^level px) are summed where their blur is wide (``mark_summed``), the others weighed by sharp views of their own (``blurred_layers``, ``layer_shares``; docs/maths.md, "Gaussian scenes", item 2); split_level + 1: none (the frame before stop 59, with the whole frame's lens visibility)
     summed_ratio: float = 1.0  # a blurred layer is summed where a part's blur is at least this x its Gaussians' footprints (the median; ``mark_summed``): 0 (every blurred layer summed) cost the fruit at 10 px 14.7 dB over black at 320 x 240, the others within 0.9 dB (stop 61, 64-sample references)
     sharp_scale: int = 2  # a summed layer is drawn alone and sharp at 1/this the resolution (its "sharp view"; the prototype, stop 60: 1/4 lost up to 4.2 dB, full resolution up to 1.5) ...
-    sharp_fraction: float = 0.25  # ... or at 1/(this x its layer's scale) where coarser, a power of 2 (0.5: the donut at 10 px -1.9 dB over black, 320 x 240; 0.25: -0.5..+0.6 dB there, the guitar's 35 px frame at 1920 x 1080 0.88 x the time)
+    sharp_fraction: float = 0.25  # ... or at 1/(this x its layer's scale) where coarser, a power of 2 (0.5: the donut at 10 px -1.9 dB over black, 320 x 240; 0.25: -0.5..+0.6 dB there, the guitar's 35 px frame at 1920 x 1080 0.86 x the time)
     sharp_max_blur: float = 8.0  # ... and coarser still where its blur would be more than this many of its pixels (so that its margin, 3 blurs, stays bounded at any blur; no 35 px frame of the bench reaches it)
     sharp_eps2d: float = 0.04  # ... with this low-pass, px^2 of its pixels (0.3 lost 0.5-6 dB in the prototype)
     summed_alpha: float = 1.0  # ... then blurred onto its image, whose pixel is at most 1/this x the blur, a power of 2 below its layer's scale (a blurred edge is sampled, where the layers' alpha is for footprints at least that wide: 0.35 scored -3.2..+0.9 dB at 320 x 240, the donut at 10 px -3.2 over black, playbot at 10 px +0.8)
@@ -340,7 +339,8 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     trans = np.empty(n_px, np.float32)
     depth = np.empty(n_px, np.float32)
     composite_images(rows, boxes, offsets, ids, tile_image, table,
-                     live_tiles(offsets, table, tile_image), color, trans, depth, NO_SEEN, DECODE)
+                     live_tiles(offsets, table, tile_image), color, trans, depth, NO_SEEN,
+                     DECODE)
     stats["composite_ms"] = _ms(t)
     t = time.perf_counter()
     filled = np.empty(len(tile_image), np.bool_)
@@ -352,8 +352,8 @@ def draw_layered(scene: GaussianArrays, layers: Layers, camera: Camera, lens, pa
     image = np.empty((h, w, 4), np.float32)
     combine_layers(table, filled, part_layers, color, trans,
                    depth, linear_to_srgb(np.asarray(settings.background, np.float64)), DECODE,
-                   ENCODE, np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), out_depth,
-                   image)
+                   ENCODE, np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32),
+                   out_depth, image)
     stats["combine_ms"] = _ms(t)
     stats["splats_rendered"] = int(np.count_nonzero(visible))
     box = boxes[visible].astype(np.int64)
