@@ -55,6 +55,7 @@ class LayerSettings:
     donut, the guitar and playbot seen as ``bench/gaussians.py`` sees them (issue 48), at
     640 x 480, 10 and 35 px, against references of 64 samples (2026-11-28)."""
 
+    lod_scale: float = 0.3  # the LOD cut's stop is this x ``lod_blur_fraction`` (0.35 x 0.3, about 0.1): a summed layer draws its Gaussians sharp, merged ones too (at 35 px the guitar and the biker 2.1 dB closer over black, playbot 1.3, the donut -0.7 / +1.7; about the same time at 1920 x 1080; 320 x 240, 64-sample references)
     enabled: bool = True  # False: each part drawn whole at full resolution, and lens_visibility (the frame of 2026-11-28)
     alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
@@ -72,7 +73,7 @@ class LayerSettings:
     sharp_fraction: float = 0.25  # ... or at 1/(this x its layer's scale) where coarser, a power of 2 (0.5: the donut at 10 px -1.9 dB over black, 320 x 240; 0.25: -0.5..+0.6 dB there, the guitar's 35 px frame at 1920 x 1080 0.86 x the time)
     sharp_max_blur: float = 8.0  # ... and coarser still where its blur would be more than this many of its pixels (so that its margin, 3 blurs, stays bounded at any blur; no 35 px frame of the bench reaches it)
     sharp_eps2d: float = 0.04  # ... with this low-pass, px^2 of its pixels (0.3 lost 0.5-6 dB in the prototype)
-    summed_alpha: float = 1.0  # ... then blurred onto its image, whose pixel is at most 1/this x the blur, a power of 2 below its layer's scale (a blurred edge is sampled, where the layers' alpha is for footprints at least that wide: 0.35 scored -3.2..+0.9 dB at 320 x 240, the donut at 10 px -3.2 over black, playbot at 10 px +0.8)
+    summed_alpha: float = 0.7  # ... then blurred onto its image, whose pixel is at most 1/this x the blur, a power of 2 below its layer's scale (a blurred edge is sampled, where the layers' alpha is for footprints at least that wide: 0.35 scored -3.2..+0.9 dB at 320 x 240, the donut at 10 px -3.2 over black, playbot at 10 px +0.8; 1.0 within -0.3..+0.8 of 0.7, the guitar's blur at 1920 x 1080, 35 px 1.8 x 0.7's time)
     blur_quantile: float = 0.5  # ... by a Gaussian of this quantile of its Gaussians' blur (a part's sigma; 0.25: -0.3..+0.8 dB at 320 x 240)
     share_views: int = 8  # a blurred layer that is not summed: each Gaussian's largest seen share in sharp views of its layer alone from the lens centre and this many points ...
     share_radius: float = 0.7  # ... at this fraction of the lens's radius ...
@@ -189,7 +190,9 @@ def in_layers(scene: Gaussians, camera: Camera, lens, parts, settings: RenderSet
     """(arrays, layers): the frame's Gaussians (the LOD cut, chosen by the parts' residual
     blur, where lod; else the scene) gathered once in ``layer_order``'s order."""
     if lod:
-        tree, rows = lod_rows(scene, camera, parts.residual, settings)
+        stop = settings.lod_blur_fraction * LAYERS.lod_scale
+        tree, rows = lod_rows(scene, camera, parts.residual,
+                              replace(settings, lod_blur_fraction=stop))
         layers = layer_order(tree.positions[rows], camera, lens, parts)
         arrays = cut_arrays(tree, rows[layers.order])
     else:
