@@ -361,16 +361,18 @@ def test_lens_visibility_finds_what_the_whole_lens_cannot_see(by_shifts):
 
 def test_rim_views_move_inwards_with_radius():
     """``lens_visibility_by_shifts``' radius puts the rim views at that fraction of the
-    lens's radius (``layer_shares``' views, at 0.7): the sheet's hidden Gaussian stays
-    hidden there and the sheet is seen (its shares clipped at 1: a median raw share of 0.15
-    measured, over ``SHARE_SEEN``)."""
+    lens's radius (``layer_shares``' views, at 0.7): a Gaussian just past the sheet's edge,
+    behind it, is seen more the further out the views are (shares 0.28, 0.82 at radii 0.3,
+    1.0 measured), and the sheet wholly at every radius."""
     from dofsplat.backends import cpu_gauss
 
     cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40, near=0.01)
-    sheet = cpu_gauss.lens_visibility_by_shifts(sheet_and_hidden(), cam,
-                                                ds.ThinLens(focus_distance=3.0, aperture=0.3),
-                                                ds.RenderSettings(), radius=0.7)
-    assert sheet[-1] < 0.02 and np.median(sheet[:-1]) == 1.0
+    lens, st = ds.ThinLens(focus_distance=3.0, aperture=1.0), ds.RenderSettings()
+    shares = [cpu_gauss.lens_visibility_by_shifts(sheet_and_hidden(hidden_offset=0.8), cam,
+                                                  lens, st, radius=r) for r in (0.3, 0.7, 1.0)]
+    edge = [s[-1] for s in shares]
+    assert edge[0] < edge[1] < edge[2] and edge[2] > 2.0 * edge[0], edge
+    assert all(np.median(s[:-1]) == 1.0 for s in shares)
 
 
 def _layered_and_whole(layer_settings, n=600, seed=11):

@@ -67,7 +67,7 @@ from ..gauss.composite import (DECODE, ENCODE, MIN_TRANSMITTANCE, N_STATE, S_B, 
                                finish_linear_pixel, finish_pixel, gaussian_alpha, lens_share,
                                linear_pixel, seen_share, start_pixel)
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
-                            IM_SHARP, IM_SOURCE, IM_SUM, IM_TILE0, IM_WIDTH, MAX_LAYERS,
+                            IM_SHARP, IM_SOURCE, IM_SUM, IM_TILE0, IM_WIDTH, MAX_LAYERS, N_BLUR,
                             blur_column_pixel, blur_row_pixel, close_run, fold_runs,
                             image_table, layer_listed_over, layer_sample, listed_span,
                             mark_live, over_pixel, project_layer_row)
@@ -270,8 +270,8 @@ def _combine_layers(images, filled, part_layers, color, trans, depth, bg, lut, e
                     out_trans, out_depth, image):
     """One thread per pixel of the frame: ``gauss.layers.combine_layers``, each part's layers
     joined front to back in runs (``over_pixel``, ``close_run``), a layer none of whose
-    tiles that the pixel's sample reads lists a Gaussian skipped (it holds nothing there:
-    ``layer_listed_over``), the runs back to front over the background in linear light
+    tiles that the pixel's sample reads holds anything skipped (``layer_listed_over``,
+    ``filled_tiles``), the runs back to front over the background in linear light
     (``fold_runs``), then the frame (``finish_linear_pixel``)."""
     total = cuda.local.array((1, 4), numba.float64)  # linear r, g, b and T, over the parts
     part = cuda.local.array((1, 3), numba.float64)  # a run's colour, in its space
@@ -415,7 +415,7 @@ def _best_view_shares(rows, visible, seen, n, best):
 
 # -- the stages on the host -------------------------------------------------------------------
 
-_DECODE = {}  # the colour tables on the GPU, uploaded once (``_coded``)
+_TABLES = {}  # the colour tables on the GPU, uploaded once (``_coded``)
 
 
 def _decode():
@@ -426,9 +426,9 @@ def _decode():
 def _coded(table: np.ndarray):
     """A colour table (``gauss.composite.DECODE``, ``ENCODE``) on the GPU, uploaded once."""
     key = id(table)
-    if key not in _DECODE:
-        _DECODE[key] = _upload(table)
-    return _DECODE[key]
+    if key not in _TABLES:
+        _TABLES[key] = _upload(table)
+    return _TABLES[key]
 
 
 
@@ -746,7 +746,7 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
     if len(summed):  # each summed image blurred from its sharp view, through one scratch
         source = table[summed, IM_SOURCE]
         scratch = _WS.get("g.blur", (int(table[source, IM_HEIGHT].max()),
-                                     int(table[summed, IM_WIDTH].max()), 4), np.float32)
+                                     int(table[summed, IM_WIDTH].max()), N_BLUR), np.float32)
         device_blurs = _upload(blurs)
         for i in summed:
             k = table[i, IM_SOURCE]

@@ -576,8 +576,8 @@ def combine_layers(images, filled, part_layers, color, transmittance, depth, bac
     holds nothing in the tile takes the next layer's space instead of closing (an empty run
     changes nothing: ``fold_runs``), as a pixel's own loop on the GPU does for the pixel.
 
-    By 16 x 16 tiles of the frame: a layer none of whose tiles that the tile reads lists a
-    Gaussian (``layer_listed_over``) is skipped (empty: T = 1, no colour), and a part stops
+    By 16 x 16 tiles of the frame: a layer none of whose tiles that the tile reads holds
+    anything (``layer_listed_over``) is skipped (empty: T = 1, no colour), and a part stops
     where its transmittance has fallen to MIN_TRANSMITTANCE, as a pixel's blend does."""
     h, w = out_trans.shape
     k_parts = part_layers.shape[0]
