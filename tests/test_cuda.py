@@ -418,7 +418,7 @@ def _assert_same_gaussian_frame(cpu, gpu):
     (0.0, {}),
     # the default frame: 4 lens parts in layers, LOD, lens visibility by shifts; a blur of
     # up to 5 px at 32 x 24 (20 at 128 x 96), so that the layers include coarse ones on
-    # either side of the focus and an in-focus slab (at 0.3 all is the in-focus slab)
+    # either side of the focus
     (3.0, {}),
     (0.3, {"gaussian_blur": "viewers"}),
     (0.3, {"gaussian_lod": False, "gaussian_lens_samples": 1, "gaussian_antialiased": True}),
@@ -435,7 +435,7 @@ def test_gaussian_frame_matches_cpu(aperture, settings):
     gpu = ds.render(scene, camera, lens, ds.RenderSettings(device="cuda", **settings))
     assert gpu.stats["device"] == "cuda"
     assert cpu.stats["splats_rendered"] > 0 and np.ptp(cpu.image[..., :3]) > 0.1
-    if "layers" in cpu.stats:  # the images of the in-focus slab and each part's layers,
+    if "layers" in cpu.stats:  # the images of each part's layers,
         # one layer summed (``cpu_gauss.mark_summed``), its weights from its own views
         assert cpu.stats["layers"] >= 9 and gpu.stats["layers"] == cpu.stats["layers"]
         assert cpu.stats["summed_layers"] >= 1
@@ -492,11 +492,15 @@ def test_gaussian_tile_lists_match_cpu():
 
 
 @needs_cuda
-def test_gaussian_layers_match_cpu():
+def test_gaussian_layers_match_cpu(monkeypatch):
     """A layered frame's stages on both devices, from the same plan: every projection moved
     onto its image (``project_layers``), the rows listed per tile of every image in memory
     order (``bin_images``: nearest first within a layer; 16 x 12 in the simulator, a blur of
-    up to 5 px there: images of scale 1 and 2 with margins)."""
+    up to 5 px there: images of scale 1 and 2 with margins), with an in-focus slab drawn
+    once from the lens centre (``LayerSettings.sharp_coc`` 1 px; 0, none, by default)."""
+    import dataclasses
+
+    from dofsplat.backends import cpu_gauss
     from dofsplat.backends import cuda_gauss as bg
     from dofsplat.backends.cpu_gauss import NO_SHARE, in_layers, project_plan
     from dofsplat.frame import lens_parts
@@ -506,8 +510,11 @@ def test_gaussian_layers_match_cpu():
     camera = _gaussian_camera(G_SIZE if GPU else (16, 12))
     lens = ds.ThinLens(focus_distance=2.5, aperture=6.0)
     settings = ds.RenderSettings()
+    monkeypatch.setattr(cpu_gauss, "LAYERS", dataclasses.replace(cpu_gauss.LAYERS,
+                                                                 sharp_coc=1.0))
     parts = lens_parts(camera, lens, replace(settings, lens_samples=4))
     scene, layers = in_layers(_gaussians(), camera, lens, parts, settings, lod=False)
+    assert layers.spans[layers.sharp, 1] > 0  # the slab holds Gaussians
     views, campos, cameras, spans, table, _, _ = bg.layer_plan(len(scene), layers, camera,
                                                                lens, parts, settings)
     assert len(table) >= 9 and set(table[:, IM_SCALE]) >= {1, 2}

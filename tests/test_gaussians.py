@@ -514,17 +514,18 @@ def test_layers_at_full_resolution_are_the_parts_drawn_whole():
 
 def test_coarse_layers_stay_near_the_parts_drawn_whole():
     """The default layers (down to 1/16 the resolution where the blur is 16 / 0.35 px or
-    wider; the in-focus slab once) against the parts drawn whole: above 38 dB PSNR (42.9
-    measured; a coarse layer sampled bilinearly adds a tent of s^2/6 px^2 to a blur of at
-    least (0.35 s)^2, and the sharp slab is seen from the lens centre); and it draws coarse
-    images (the point of it)."""
+    wider), with an in-focus slab drawn once (``sharp_coc`` 1 px; none by default), against
+    the parts drawn whole: above 38 dB PSNR (40.5 measured; a coarse layer sampled
+    bilinearly adds a tent of s^2/6 px^2 to a blur of at least (0.35 s)^2, and the sharp
+    slab is seen from the lens centre); and it draws coarse images (the point of it)."""
     from dofsplat.backends.cpu_gauss import LAYERS
     from dofsplat.metrics import psnr
 
     image, _, whole, _, layers = _layered_and_whole(
-        dataclasses.replace(LAYERS, summed_level=LAYERS.split_level + 1))
+        dataclasses.replace(LAYERS, summed_level=LAYERS.split_level + 1, sharp_coc=1.0))
     assert np.diff(layers.spans, axis=1).ravel()[layers.scales >= 8].sum() > 50
-    assert psnr(image, whole) > 38.0
+    assert layers.spans[layers.sharp, 1] > 0  # the slab holds Gaussians
+    assert psnr(image, whole) > 38.0, psnr(image, whole)
 
 
 def test_a_summed_layers_sharp_view_is_bounded_at_any_blur():
@@ -606,7 +607,7 @@ def test_layers_never_read_an_unwritten_tile():
                        np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32),
                        out_depth, image)
         frames.append((image, out_depth, np.isnan(trans).mean()))
-    assert frames[0][2] > 0.5 and frames[1][2] == 0.0  # most pixels unwritten, then none
+    assert frames[0][2] > 0.4 and frames[1][2] == 0.0  # many pixels unwritten (0.47), then none
     assert not np.isnan(frames[0][0]).any() and not np.isnan(frames[0][1]).any()
     np.testing.assert_array_equal(frames[0][0], frames[1][0])
     np.testing.assert_array_equal(frames[0][1], frames[1][1])
@@ -904,3 +905,45 @@ def test_a_damaged_cached_tree_is_rebuilt(tree_cache, tmp_path):
     short.save(tmp_path / "short.npz")
     with pytest.raises(DofsplatError, match="do not match the scene's 200 Gaussians"):
         lod.GaussianTree.load(tmp_path / "short.npz", scene(n=200, seed=6))
+
+
+def test_a_lens_wide_against_its_focus_distance_is_drawn_in_more_parts():
+    """``cpu_gauss.part_count``: the lens in (D / (P part_angle))^2 parts where that is more
+    than the 4 of ``gaussian_lens_samples``, at most ``max_parts``; one pass stays one. On
+    flat, tilted Gaussians under a lens 8 x as wide as its focus distance (a part's view of a
+    footprint changes with its direction), the 16 parts are closer to the 256-sample lens
+    reference than 4 by more than 1 dB (1.9 measured; the fruit at 35 px +8.0, bench/
+    RESULTS.md)."""
+    from dofsplat.backends import cpu_gauss as cg
+    from dofsplat.metrics import psnr
+    from dofsplat.reference import render_reference
+
+    cam = ds.Camera(eye=(0, 0, 3), target=(0, 0, 0), width=96, height=96, fov_y=40, near=0.01)
+    st = ds.RenderSettings(gaussian_lod=False)
+    wide = cg.LAYERS.part_angle
+    assert cg.part_count(cam, ds.ThinLens(focus_distance=3.0, aperture=3.0), st) == 4
+    assert cg.part_count(cam, ds.ThinLens(focus_distance=3.0, aperture=3.0 * 3.0 * wide),
+                         st) == 9
+    assert cg.part_count(cam, ds.ThinLens(focus_distance=3.0, aperture=24.0), st) == 16
+    assert cg.part_count(cam, ds.ThinLens(focus_distance=3.0, aperture=24.0),
+                         dataclasses.replace(st, gaussian_lens_samples=1)) == 1
+    rng = np.random.default_rng(2)
+    n = 40
+    q = rng.normal(size=(n, 4))
+    g = Gaussians(positions=np.c_[rng.uniform(-0.5, 0.5, (n, 2)), rng.uniform(-0.3, 0.3, n)],
+                  scales=np.tile([0.2, 0.05, 0.005], (n, 1)),
+                  rotations=q / np.linalg.norm(q, axis=1, keepdims=True),
+                  opacity=rng.uniform(0.6, 0.95, n),
+                  sh=(rng.uniform(0.1, 0.9, (n, 1, 3)) - 0.5) / 0.28209479177387814)
+    lens = ds.ThinLens(focus_distance=3.0, aperture=24.0)
+    ref = render_reference(g, cam, lens, st, samples=256, progress=False).image
+    frame = ds.render(g, cam, lens, st)
+    assert frame.stats["lens_samples"] == 16
+    saved = cg.LAYERS
+    cg.LAYERS = dataclasses.replace(saved, part_angle=0.0)
+    try:
+        four = ds.render(g, cam, lens, st)
+    finally:
+        cg.LAYERS = saved
+    assert four.stats["lens_samples"] == 4
+    assert psnr(frame.image, ref) > psnr(four.image, ref) + 1.0

@@ -60,7 +60,9 @@ class LayerSettings:
     alpha: float = 0.35  # a layer's pixel is at most 1/alpha x its Gaussians' residual blur (standard deviation): 0.6, 0.45 and 0.35 score alike, 0.25 loses 0.5 dB on the guitar at 35 px
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
     split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale; 6: the donut at 35 px +1.0 / -1.2 dB over black / white, the guitar alike, 64-sample references)
-    sharp_coc: float = 1.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre, where the parts' centroids (0.6 of the lens radius out at K = 4) see them under a pixel apart: 19-31 % fewer fragments on playbot at 1920 x 1080 for -0.5 dB there at 10 px (640 x 480); 2 px: -2.4 dB
+    sharp_coc: float = 0.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre (the "sharp slab"), not by each part: 0, none. At 1 px (the default to stop 61) 5-16 % fewer fragments at 1920 x 1080 and 35 px, but 0.0-2.0 dB further from the reference at 320 x 240 and 1920 x 1080 (playbot at 1920 x 1080, 10 px: 52.3 against 54.2), and over white 12.6 dB on the fruit at 10 px, whose in-focus label the rim of a lens 2.3 x as wide as its distance sees at 49 degrees (stop 62)
+    part_angle: float = 2.0  # the lens in more parts where it is wide against its focus distance P: at least (D / (P part_angle))^2 of them, so that a part of diameter about D / sqrt(K) sees a Gaussian from directions under part_angle x its depth apart (``part_count``; a footprint, drawn about one view's shape, changes with the view): on the fruit at 35 px (D = 8.1 P, 16 parts) +8.0 dB over black at 320 x 240; the other scenes at 1920 x 1080 keep 4
+    max_parts: int = 16  # ... at most (32 scored as 16 on the fruit)
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
     visibility_coc_fraction: float = 0.1  # ... and coarser where the blur allows: a visibility pixel up to this x the median C_r of the frame's Gaussians (``visibility_scale_for``; 0.2 lost 0.23-0.44 dB on playbot)
@@ -83,19 +85,31 @@ class LayerSettings:
 LAYERS = LayerSettings()
 
 
+def part_count(camera: Camera, lens, settings: RenderSettings) -> int:
+    """How many parts the lens is drawn in: the larger of ``lens_samples`` and
+    ``gaussian_lens_samples`` (4 by default; 1, one pass, is kept), and, where the lens is
+    wide against its focus distance, as many as a part's view of a Gaussian asks
+    (``LAYERS.part_angle``), up to ``LAYERS.max_parts``."""
+    k = max(settings.lens_samples, settings.gaussian_lens_samples)
+    if k == 1 or lens is None or LAYERS.part_angle <= 0.0:
+        return k
+    wide = effective_diameter(camera, lens) / (float(lens.focus_distance) * LAYERS.part_angle)
+    return max(k, min(LAYERS.max_parts, math.ceil(wide * wide)))
+
+
 def render_gaussians_cpu(scene: Gaussians, camera: Camera, lens,
                          settings: RenderSettings) -> RenderResult:
     """A frame of a Gaussian scene (``render`` dispatches here); ``settings.gaussian_blur``
     picks ours or the viewers' blur (``gauss/project.py``)."""
     t0 = time.perf_counter()
     blur = settings.gaussian_blur
-    k = max(settings.lens_samples, settings.gaussian_lens_samples)
-    parts = lens_parts(camera, lens, replace(settings, lens_samples=k))
+    parts = lens_parts(camera, lens, replace(settings,
+                                             lens_samples=part_count(camera, lens, settings)))
     n_in = len(scene)
     blurred = coc_coefficients(camera, lens, settings)[0] > 0.0
     lod = settings.lod and settings.gaussian_lod and blurred
     layered = LAYERS.enabled and parts is not None and blur == "ours"
-    stats = {}
+    stats = {"lens_samples": 1 if parts is None else len(parts.cameras)}
     t = time.perf_counter()
     if layered:
         positions = scene.positions  # the scene's, not the cut's (``visibility_scale_for``)

@@ -78,7 +78,7 @@ from ..gaussians import Gaussians
 from . import cpu_gauss
 from . import cuda as surfel_cuda
 from .cpu_gauss import (BLURS, blur_variance, blurred_layers, in_layers, layer_plan, lod_cut,
-                        shifted_views, summed_layers, visibility_cameras)
+                        part_count, shifted_views, summed_layers, visibility_cameras)
 from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
                    exclusive_scan)
 
@@ -773,8 +773,8 @@ def render_gaussians_cuda(scene, camera, lens, settings) -> RenderResult:
     clock = _Clock()
     clock.mark("start")
     blur = settings.gaussian_blur
-    k = max(settings.lens_samples, settings.gaussian_lens_samples)
-    parts = lens_parts(camera, lens, replace(settings, lens_samples=k))
+    parts = lens_parts(camera, lens, replace(settings,
+                                             lens_samples=part_count(camera, lens, settings)))
     n_in = len(scene)
     blurred = coc_coefficients(camera, lens, settings)[0] > 0.0
     lod = settings.lod and settings.gaussian_lod and blurred
