@@ -6,7 +6,8 @@
 Through a lens with our blur (``gaussian_blur = "ours"``) the frame first takes the LOD cut
 (``lod_cut``) and what the lens sees of each Gaussian (the lens visibility). With the lens
 in parts (K = the larger of ``settings.gaussian_lens_samples``, 4 by default, and
-``lens_samples``; ``frame.lens_parts``) the frame is K passes, each seen from its part's
+``lens_samples``, more where the lens is wide against its focus distance: ``part_count``;
+``frame.lens_parts``) the frame is K passes, each seen from its part's
 centroid with the residual blur, averaged in linear light; each pass is drawn in layers
 (``LAYERS``, ``draw_layered``, ``gauss/layers.py``): slabs of depth, each at the resolution
 its blur allows, every image of the frame composited in one loop. A widely blurred layer is
@@ -62,7 +63,7 @@ class LayerSettings:
     split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale; 6: the donut at 35 px +1.0 / -1.2 dB over black / white, the guitar alike, 64-sample references)
     sharp_coc: float = 0.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre (the "sharp slab"), not by each part: 0, none. At 1 px (the default to stop 61) 5-16 % fewer fragments at 1920 x 1080 and 35 px, but 0.0-2.0 dB further from the reference at 320 x 240 and 1920 x 1080 (playbot at 1920 x 1080, 10 px: 52.3 against 54.2), and over white 12.6 dB on the fruit at 10 px, whose in-focus label the rim of a lens 2.3 x as wide as its distance sees at 49 degrees (stop 62)
     part_angle: float = 2.0  # the lens in more parts where it is wide against its focus distance P: at least (D / (P part_angle))^2 of them, so that a part of diameter about D / sqrt(K) sees a Gaussian from directions under part_angle x its depth apart (``part_count``; a footprint, drawn about one view's shape, changes with the view): on the fruit at 35 px (D = 8.1 P, 16 parts) +8.0 dB over black at 320 x 240; the other scenes at 1920 x 1080 keep 4
-    max_parts: int = 16  # ... at most (32 scored as 16 on the fruit)
+    max_parts: int = 16  # ... at most (32: the fruit at 35 px 38.2 dB against 16's 38.8, stop 61's frame)
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
     visibility_coc_fraction: float = 0.1  # ... and coarser where the blur allows: a visibility pixel up to this x the median C_r of the frame's Gaussians (``visibility_scale_for``; 0.2 lost 0.23-0.44 dB on playbot)

@@ -19,8 +19,9 @@ then its finer ones, the sharp slab, then the far side's finest first (``layer_k
 What changes against drawing the part whole: a pixel's early stop (T <= 1e-4) applies
 within a layer only, and a coarse layer is sampled, not drawn, at full resolution.
 
-The sharp slab (C_r below ``sharp_coc``) is drawn once, from the lens centre with the whole
-lens's blur, instead of once per part.
+The sharp slab (C_r below ``sharp_coc``; 0 px, none, by default: docs/maths.md, "Gaussian
+scenes", item 4) is drawn once, from the lens centre with the whole lens's blur, instead of
+once per part.
 
 A widely blurred layer is *summed* (which ones: ``backends.cpu_gauss.mark_summed``): its
 Gaussians are drawn alone and sharp, from the part's camera, into a "sharp view"
