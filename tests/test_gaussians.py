@@ -211,7 +211,7 @@ def test_a_summed_image_is_its_sharp_view_blurred_as_the_slow_twin():
         blurs = np.array([0.0, sigma])
         filled = np.zeros(n_tiles, np.bool_)
         blur_rows(table, blurs, 1, offsets, color, trans, scratch)
-        blur_columns(table, blurs, 1, scratch, color, trans, depth, filled)
+        blur_columns(table, blurs, 1, offsets, scratch, color, trans, depth, filled)
         want = slow.blurred(np.concatenate([linear, cover[..., None]], -1), (2, vm),
                             (w_i, h_i, scale, 1), sigma)
         want_cover = want[..., 3]

@@ -392,7 +392,7 @@ def blur_summed(table, blurs, offsets, color, trans, depth, filled) -> None:
                         N_BLUR), np.float32)
     for i in summed:
         blur_rows(table, blurs, i, offsets, color, trans, scratch)
-        blur_columns(table, blurs, i, scratch, color, trans, depth, filled)
+        blur_columns(table, blurs, i, offsets, scratch, color, trans, depth, filled)
 
 
 def project_plan(scene, views, campos, cameras, spans, table, share=None,

@@ -69,8 +69,8 @@ from ..gauss.composite import (DECODE, ENCODE, MIN_TRANSMITTANCE, N_STATE, S_B, 
 from ..gauss.layers import (IM_HEIGHT, IM_MARGIN, IM_PIXEL0, IM_ROW0, IM_ROW1, IM_SCALE,
                             IM_SHARP, IM_SOURCE, IM_SUM, IM_TILE0, IM_WIDTH, MAX_LAYERS, N_BLUR,
                             blur_column_pixel, blur_row_pixel, close_run, fold_runs,
-                            image_table, layer_listed_over, layer_sample, listed_span,
-                            mark_live, over_pixel, project_layer_row)
+                            image_table, layer_listed_over, layer_sample, listed_rows_span,
+                            listed_span, mark_live, over_pixel, project_layer_row)
 from ..gauss.project import (BLUR_NONE, EPS2D, F_CA, F_CB, F_CC, F_CUT, F_DEPTH, F_OPACITY,
                              F_X, F_Y, N_FIELDS, intrinsics, project_gaussian,
                              project_shifted_view, view_matrix)
@@ -104,6 +104,7 @@ _fold_runs = device_twin(fold_runs)
 _blur_row_pixel = device_twin(blur_row_pixel)
 _listed_span = device_twin(listed_span)
 _blur_column_pixel = device_twin(blur_column_pixel)
+_listed_rows_span = device_twin(listed_rows_span)
 
 PIXELS = TILE * TILE  # threads per block of the compositing: one per pixel of a tile
 INDEX_BITS = 32  # a sort key: the depth's bits above the row (or the row alone)
@@ -344,13 +345,15 @@ def _blur_rows(images, blurs, i, offsets, color, trans, scratch):
 
 
 @cuda.jit
-def _blur_columns(images, blurs, i, scratch, color, trans, depth, filled):
+def _blur_columns(images, blurs, i, offsets, scratch, color, trans, depth, filled):
     """One thread per pixel of image i: ``gauss.layers.blur_columns``."""
     g = cuda.grid(1)
     w_i = images[i, IM_WIDTH]
     if g < images[i, IM_HEIGHT] * w_i:
-        _blur_column_pixel(images, blurs, i, scratch, color, trans, depth, filled, g // w_i,
-                           g % w_i)
+        y = g // w_i
+        p0, p1 = _listed_rows_span(images, blurs, i, offsets, y)
+        _blur_column_pixel(images, blurs, i, scratch, color, trans, depth, filled, y, g % w_i,
+                           p0, p1)
 
 
 @cuda.jit
@@ -753,7 +756,8 @@ def draw_layered_cuda(arrays: dict, layers, camera, lens, parts, settings, share
             _blur_rows[_blocks(int(table[k, IM_HEIGHT] * table[i, IM_WIDTH])), THREADS](
                 images.table, device_blurs, int(i), offsets, color, trans, scratch)
             _blur_columns[_blocks(int(table[i, IM_HEIGHT] * table[i, IM_WIDTH])), THREADS](
-                images.table, device_blurs, int(i), scratch, color, trans, depth, filled)
+                images.table, device_blurs, int(i), offsets, scratch, color, trans, depth,
+                filled)
     _combine_layers[_blocks(h * w), THREADS](
         images.table, filled, _upload(part_layers), color, trans, depth, bg, _decode(),
         _coded(ENCODE),
