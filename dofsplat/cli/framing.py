@@ -729,11 +729,15 @@ def write_stats(path: Path, args, outputs, result, camera, lens, focus_source,
 
 def summary(paths: list[Path], stats: dict, focus: str = "") -> str:
     """``wrote demo.png (800x600, 337,807 points, 261,301 splats, 30.9M fragments, 0.90 s)``,
-    the focus where dofsplat chose it (``..., 0.90 s, focused at 1.93 (the surface at the
-    image centre)``: ``focus_note``), and for a model file how long loading took:
-    ``...; model loaded in 6.1 s`` or ``...; model from the cache in 0.02 s``."""
+    the lens's parts where a frame drew more than one (``..., 4 lens parts, ...``: a Gaussian
+    scene's default, more under a lens wide against its focus distance), the focus where
+    dofsplat chose it (``..., 0.90 s, focused at 1.93 (the surface at the image centre)``:
+    ``focus_note``), and for a model file how long loading took: ``...; model loaded in
+    6.1 s`` or ``...; model from the cache in 0.02 s``."""
     samples = (f"{stats['samples']} lens sample{'s' * (stats['samples'] != 1)}, "
                if "samples" in stats else "")
+    if stats.get("lens_samples", 1) > 1:
+        samples += f"{stats['lens_samples']} lens parts, "
     load = ""
     if "load_ms" in stats:
         how = "from the cache in" if stats["load_from_cache"] else "loaded in"
