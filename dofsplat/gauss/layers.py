@@ -414,10 +414,10 @@ def listed_rows_span(images, blurs, i, offsets, y):
     k = images[i, IM_SOURCE]
     _, lo, hi = blur_taps(y, i, k, images, blurs[i])
     lo, hi = max(lo, 0), min(hi, images[k, IM_HEIGHT] - 1)
-    if lo > hi:
-        return images[k, IM_WIDTH], 0
     p0, p1 = images[k, IM_WIDTH], 0
-    for ty in range(max(lo, 0) // TILE, hi // TILE + 1):  # (none where lo > hi)
+    if lo > hi:  # no tap inside the view
+        return p0, p1
+    for ty in range(lo // TILE, hi // TILE + 1):  # (a tile's rows share its row's span)
         a, b = listed_span(images, offsets, k, ty * TILE)
         if a < b:
             p0, p1 = min(p0, a), max(p1, b)
