@@ -62,7 +62,7 @@ class LayerSettings:
     max_level: int = 4  # the coarsest layer is 1/2^max_level the resolution (5 lost 0.5 dB at 35 px)
     split_level: int = 4  # levels up to this are layers of their own (past max_level at its scale; 6: the donut at 35 px +1.0 / -1.2 dB over black / white, the guitar alike, 64-sample references)
     sharp_coc: float = 0.0  # px: Gaussians whose whole-lens C_r is below this are drawn once, from the lens centre (the "sharp slab"), not by each part: 0, none. At 1 px (the default to stop 61) 5-16 % fewer fragments at 1920 x 1080 and 35 px, but 0.0-2.0 dB further from the reference at 320 x 240 and 1920 x 1080 (playbot at 1920 x 1080, 10 px: 52.3 against 54.2), and over white 12.6 dB on the fruit at 10 px, whose in-focus label the rim of a lens 2.3 x as wide as its distance sees at 49 degrees (stop 62)
-    part_angle: float = 2.0  # the lens in more parts where it is wide against its focus distance P: at least (D / (P part_angle))^2 of them, so that a part of diameter about D / sqrt(K) sees a Gaussian from directions under part_angle x its depth apart (``part_count``; a footprint, drawn about one view's shape, changes with the view): on the fruit at 35 px (D = 8.1 P, 16 parts) +8.0 dB over black at 320 x 240; the other scenes at 1920 x 1080 keep 4
+    part_angle: float = 2.0  # the lens in more parts where it is wide against its focus distance P: at least (D / (P part_angle))^2 of them, so that a part of diameter about D / sqrt(K) sees a Gaussian from directions under part_angle x its depth apart (``part_count``; a footprint, drawn about one view's shape, changes with the view): on the fruit at 35 px (D = 8.1 P, 16 parts) 39.2 dB over black at 320 x 240 (bench/gaussians.py), stop 61's 4 parts 30.8; the other scenes at 1920 x 1080 keep 4
     max_parts: int = 16  # ... at most (32: the fruit at 35 px 38.2 dB against 16's 38.8, stop 61's frame)
     visibility_views: int = 4  # lens visibility: views on the lens's rim, besides its centre (6 scored alike)
     visibility_scale: int = 4  # lens visibility: at 1/this the resolution at least (8 lost 1-4 dB at 640 x 480, 10 and 35 px) ...
@@ -299,7 +299,7 @@ def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
     sharp views of its layer alone from the lens centre and ``LAYERS.share_views`` points
     at ``share_radius`` of the lens's radius, ``lens_visibility_by_shifts``), 1 in the rest
     (a summed layer is drawn sharp, and a layer blurred under 0.7 px takes none)."""
-    weighed = [j for j in blurred_layers(layers) if not layers.summed[j]]
+    weighed = weighed_layers(layers)
     if not weighed:
         return None
     share = np.ones(len(scene), np.float32)
@@ -312,6 +312,11 @@ def layer_shares(scene: GaussianArrays, layers: Layers, camera: Camera, lens,
             sub, camera, lens, settings, views=LAYERS.share_views, scale=LAYERS.share_scale,
             radius=LAYERS.share_radius, eps2d=LAYERS.share_eps2d)
     return share
+
+
+def weighed_layers(layers: Layers) -> list[int]:
+    """The ``blurred_layers`` that are not summed: those ``layer_shares`` weighs."""
+    return [j for j in blurred_layers(layers) if not layers.summed[j]]
 
 
 def blurred_layers(layers: Layers) -> list[int]:
@@ -461,15 +466,13 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
                 # its sharp view (margin: what the blur carries in from outside the frame),
                 # then its own image, blurred from that
                 blur = max(layers.blur[j], 0.5)
-                vs = max(ss, 2 ** int(math.floor(math.log2(max(LAYERS.sharp_fraction * scale,
-                                                                1.0)))),
-                         2 ** int(math.ceil(math.log2(max(blur / LAYERS.sharp_max_blur, 1.0)))))
+                vs = max(ss, pow2_floor(LAYERS.sharp_fraction * scale),
+                         pow2_ceil(blur / LAYERS.sharp_max_blur))
                 sigma = blur / vs
                 vm = int(math.ceil(BLUR_REACH * sigma)) + 1
                 images.append((-(-w // vs) + 2 * vm, -(-h // vs) + 2 * vm, vs, vm, r0,
                                r0 + b - a, False, True))
-                bs = min(scale, 2 ** int(math.floor(math.log2(max(blur / LAYERS.summed_alpha,
-                                                                  1.0)))))
+                bs = min(scale, pow2_floor(blur / LAYERS.summed_alpha))
                 images.append((-(-w // bs) + 2, -(-h // bs) + 2, bs, 1, r0 + b - a,
                                r0 + b - a, True, False, len(images) - 1))
                 blurs += [0.0, sigma]
@@ -485,6 +488,16 @@ def layer_plan(n: int, layers: Layers, camera: Camera, lens, parts, settings: Re
             np.array([job[0].eye for job in jobs], np.float64), cameras,
             np.array([job[2:] for job in jobs], np.int64), image_table(images), part_layers,
             np.array(blurs, np.float64))
+
+
+def pow2_floor(x: float) -> int:
+    """The largest power of 2 not above x, at least 1."""
+    return 2 ** int(math.floor(math.log2(max(x, 1.0))))
+
+
+def pow2_ceil(x: float) -> int:
+    """The smallest power of 2 not below x, at least 1."""
+    return 2 ** int(math.ceil(math.log2(max(x, 1.0))))
 
 
 def draw_gaussians(scene: Gaussians, camera: Camera, lens, settings: RenderSettings,

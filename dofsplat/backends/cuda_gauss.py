@@ -78,7 +78,8 @@ from ..gaussians import Gaussians
 from . import cpu_gauss
 from . import cuda as surfel_cuda
 from .cpu_gauss import (BLURS, blur_variance, blurred_layers, in_layers, layer_plan, lod_cut,
-                        part_count, shifted_views, summed_layers, visibility_cameras)
+                        part_count, shifted_views, summed_layers, visibility_cameras,
+                        weighed_layers)
 from .cuda import (SIMULATOR, THREADS, _WS, _blocks, _Clock, _fill, _scalar, _upload, device_twin,
                    exclusive_scan)
 
@@ -640,7 +641,7 @@ def layer_shares_cuda(arrays: dict, positions: np.ndarray, layers, camera, lens,
     """(N,) float32 on the GPU, or None: ``cpu_gauss.layer_shares``, each blurred layer's that
     is not summed weighed from its own views (``lens_visibility_by_shifts_cuda`` on its run of
     the arrays)."""
-    weighed = [j for j in blurred_layers(layers) if not layers.summed[j]]
+    weighed = weighed_layers(layers)
     if not weighed:
         return None
     n = len(positions)

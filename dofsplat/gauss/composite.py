@@ -247,16 +247,9 @@ def best_view_shares(rows, visible, seen, n, best):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def best_view_share(rows, visible, seen, n, i):
-    """Gaussian i's ``lens_share`` of its largest ``seen_share`` over the views
-    (``best_view_shares``, which see): the per-Gaussian maths that the CUDA backend compiles
+    """Gaussian i's ``lens_share`` of its largest ``seen_share`` over the stacked views of
+    ``best_view_shares`` (which see): the per-Gaussian maths that the CUDA backend compiles
     as a device function too (its seen: one row, summed by atomics)."""
-    return lens_share(raw_view_share(rows, visible, seen, n, i))
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def raw_view_share(rows, visible, seen, n, i):
-    """Gaussian i's largest ``seen_share`` over the stacked views of ``best_view_shares``
-    (which see), before ``lens_share``."""
     n_views = rows.shape[0] // max(n, 1)
     share = 0.0
     for v in range(n_views):
@@ -266,7 +259,7 @@ def raw_view_share(rows, visible, seen, n, i):
             for t in range(seen.shape[0]):
                 total += seen[t, r]
             share = max(share, seen_share(rows, r, total))
-    return share
+    return lens_share(share)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
