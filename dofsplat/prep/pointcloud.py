@@ -77,11 +77,17 @@ TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is
 # temporaries: 10 MB of them at k = 24, where all rows at once peaked at 2.4 kB a point
 # (issue 50). The results do not depend on it: each row is computed alone
 ROW_CHUNK = 1 << 14
+# more distinct points than this are prepared in chunks of at most this many, each with a
+# halo of its neighbours' points (``prep.chunks``), so that memory stays bounded whatever
+# the cloud's size (issue 50): at about 0.7 kB a point in the preparation, a chunk of 2^20
+# points peaks near 1 GB
+CHUNK_POINTS = 1 << 20
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
                       viewpoint=None, smooth: bool = True, normalise: str = "object",
-                      progress: bool = True, source: str = "points") -> Surfels:
+                      progress: bool = True, source: str = "points",
+                      chunk_points: int | None = None) -> Surfels:
     """Surfels from a bare point cloud: PCA normals, orientation, radii and areas.
 
     positions: (N, 3) float, world units
@@ -101,6 +107,9 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
                or "none" (the weights of step 4)
     progress:  show tqdm progress bars on stderr (only when it is a terminal)
     source:    name for messages (e.g. the file name)
+    chunk_points: more distinct points than this (default ``CHUNK_POINTS``) are prepared in
+               chunks of at most this many (``prep.chunks.chunked_surfels``: the same steps
+               on each chunk and a halo of its neighbours, bounded memory)
 
     Rows with NaN or inf positions are dropped with a warning; exact duplicate positions
     are merged (colours averaged, the first normal kept). Raises DofsplatError for fewer
@@ -130,62 +139,106 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
                             f"and radii, got {n}")
     k = _check_k(k, n)
 
+    chunk_points = CHUNK_POINTS if chunk_points is None else chunk_points
+    if n > chunk_points:  # more than a chunk: in chunks, with bounded memory (issue 50)
+        from .chunks import chunked_surfels
+
+        return chunked_surfels(pts, cols, nrm, vp, k=k, smooth=smooth, normalise=normalise,
+                               chunk_points=chunk_points, progress=progress, source=source)
     stages = 4 if normalise == "none" else 5
     with _stage_bar(stages, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
-        bar.set_postfix_str("neighbours")
-        # smoothing moves the points, and their distances are measured again after it
-        dist, idx = nearest_neighbours(pts, k, distances=not smooth)
-        bar.update()
-
-        bar.set_postfix_str("normals")
-        given = np.zeros(n, bool)
-        if nrm is not None:
-            lengths = np.linalg.norm(nrm, axis=1)
-            given = np.isfinite(lengths) & (lengths > 1e-12)
-        normals_out = np.empty((n, 3), np.float64)
-        if smooth or not given.all():
-            plane_normals, centroids = pca_planes(pts, idx)
-            normals_out[:] = plane_normals
-            if smooth:
-                pts = project_to_planes(pts, plane_normals, centroids)
-                del plane_normals, centroids
-        if given.any():
-            normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
-        # the density (step 4) needs only the distances: taken now, they need not sit
-        # beside the orientation's graph, and the smoothed points' distances are never
-        # held whole (issue 50)
-        if smooth:  # the points moved: their neighbours' distances and order changed
-            idx, r_area, r_limit = remeasured_density(pts, idx)
-        else:
-            r_area, r_limit = area_radii(dist)
-        del dist
-        # the later steps read no further than the ORIENT_K or VORONOI_NEIGHBOURS nearest
-        idx = np.ascontiguousarray(idx[:, :max(ORIENT_K, VORONOI_NEIGHBOURS) + 1])
-        bar.update()
-
-        bar.set_postfix_str("orientation")
-        if vp is not None:
-            normals_out = orient_towards(pts, normals_out, vp)
-        elif not given.all():
-            normals_out = orient_normals(pts, normals_out, idx[:, 1:min(k, ORIENT_K) + 1],
-                                         fixed=given)
-        bar.update()
-
-        bar.set_postfix_str("radii")
-        radius, area_weight = surfel_radii(pts, normals_out, idx, r_area, r_limit)
-        bar.update()
+        pts, normals_out, radius, area_weight, _ = surfel_stages(pts, nrm, vp, k, smooth, bar)
         if cols is None:
             cols = np.full((n, 3), MID_GREY, np.float32)
         surfels = Surfels(positions=pts, normals=normals_out, radius=radius, colors=cols,
                           weight=area_weight)
         # the surfels hold float32 copies: the normalisation's own neighbour lists need not
         # sit beside these (issue 50)
-        del pts, normals_out, radius, area_weight, idx, r_area, r_limit
+        del pts, normals_out, radius, area_weight
         if normalise != "none":
             bar.set_postfix_str(f"normalise ({normalise})")
             surfels = normalise_surfels(surfels, normalise, progress=False)
             bar.update()
     return surfels
+
+
+class _NoBar:
+    """A stage bar that shows nothing (``surfel_stages`` without one)."""
+
+    def set_postfix_str(self, text):
+        pass
+
+    def update(self):
+        pass
+
+
+def surfel_stages(pts: np.ndarray, nrm, vp, k: int, smooth: bool, bar=None, *,
+                  vote: bool = True, outliers: bool = True):
+    """Steps 1-4 of the module docstring on points without duplicates: (positions (N, 3)
+    float64, moved onto their planes where smooth; normals (N, 3) float64; radius (N,);
+    area_weight (N,); orientation), ``bar`` updated after each step. nrm: (N, 3) given
+    normals (rows of zeros or NaN: none) or None; vp: ``points_to_surfels``' viewpoint or
+    None. orientation is None where the normals were turned towards vp or all given; else
+    (label (N,), n_comp, tally, has_fixed (n_comp,)): the neighbour graph's components,
+    ``outward_votes``' votes with their sums (tally=True) and whether a component holds a
+    given normal.
+    vote=False leaves the normals as propagated, before the votes turn a component, and
+    outliers=False the radii without ``outlier_cap`` (what the preparation in chunks joins
+    across chunks: ``prep.chunks``); it then returns (r_area, limit) of
+    :func:`area_radii` after the orientation, for that cap."""
+    bar = _NoBar() if bar is None else bar
+    n = len(pts)
+    bar.set_postfix_str("neighbours")
+    # smoothing moves the points, and their distances are measured again after it
+    dist, idx = nearest_neighbours(pts, k, distances=not smooth)
+    bar.update()
+
+    bar.set_postfix_str("normals")
+    given = np.zeros(n, bool)
+    if nrm is not None:
+        lengths = np.linalg.norm(nrm, axis=1)
+        given = np.isfinite(lengths) & (lengths > 1e-12)
+    normals_out = np.empty((n, 3), np.float64)
+    if smooth or not given.all():
+        plane_normals, centroids = pca_planes(pts, idx)
+        normals_out[:] = plane_normals
+        if smooth:
+            pts = project_to_planes(pts, plane_normals, centroids)
+            del plane_normals, centroids
+    if given.any():
+        normals_out[given] = nrm[given] / np.linalg.norm(nrm[given], axis=1)[:, None]
+    # the density (step 4) needs only the distances: taken now, they need not sit
+    # beside the orientation's graph, and the smoothed points' distances are never
+    # held whole (issue 50)
+    if smooth:  # the points moved: their neighbours' distances and order changed
+        idx, r_area, r_limit = remeasured_density(pts, idx, outliers)
+    else:
+        r_area, r_limit = area_radii(dist, outliers)
+    del dist
+    # the later steps read no further than the ORIENT_K or VORONOI_NEIGHBOURS nearest
+    idx = np.ascontiguousarray(idx[:, :max(ORIENT_K, VORONOI_NEIGHBOURS) + 1])
+    bar.update()
+
+    bar.set_postfix_str("orientation")
+    orientation = None
+    if vp is not None:
+        normals_out = orient_towards(pts, normals_out, vp)
+    elif not given.all():
+        normals_out, label, n_comp, has_fixed = propagate_orientation(
+            pts, normals_out, idx[:, 1:min(k, ORIENT_K) + 1], fixed=given)
+        tally = outward_votes(pts, normals_out, label, n_comp, tally=True)
+        if vote:
+            flip = (tally[0] < 0) & ~has_fixed
+            normals_out[flip[label]] *= -1.0
+        orientation = label, n_comp, tally, has_fixed
+    bar.update()
+
+    bar.set_postfix_str("radii")
+    radius, area_weight = surfel_radii(pts, normals_out, idx, r_area, r_limit)
+    bar.update()
+    if not outliers:
+        return pts, normals_out, radius, area_weight, orientation, (r_area, r_limit)
+    return pts, normals_out, radius, area_weight, orientation
 
 
 # A depth capture's surfels: the footprint of a disk of this many pixels (radius) seen from
@@ -336,7 +389,7 @@ def neighbour_distances(positions: np.ndarray, idx: np.ndarray):
     return dist, sorted_idx
 
 
-def remeasured_density(positions: np.ndarray, idx: np.ndarray):
+def remeasured_density(positions: np.ndarray, idx: np.ndarray, outliers: bool = True):
     """:func:`neighbour_distances` and then :func:`area_radii` of its distances, a block
     of rows at a time: (idx (N, m) sorted, r_area (N,), limit (N,)), the same values
     without the (N, m) float64 distances ever whole (8 bytes a neighbour and a point:
@@ -350,7 +403,7 @@ def remeasured_density(positions: np.ndarray, idx: np.ndarray):
         dist, sorted_idx[rows] = _sorted_distances(positions, idx, rows)
         r_area[rows] = _area_radius(dist)
         spacing[rows] = dist[:, _spacing_column(dist.shape[1])]
-    return sorted_idx, r_area, _radius_limit(r_area, spacing)
+    return sorted_idx, r_area, _radius_limit(r_area, spacing, outliers)
 
 
 def pca_normals_slow(positions: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -380,6 +433,17 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     without a fixed normal gets its sign afterwards from :func:`outward_votes` (outward
     for a closed surface).
     """
+    out, label, n_comp, has_fixed = propagate_orientation(positions, normals, idx, fixed)
+    flip = (outward_votes(positions, out, label, n_comp) < 0) & ~has_fixed
+    out[flip[label]] *= -1.0
+    return out
+
+
+def propagate_orientation(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
+                          fixed: np.ndarray | None = None):
+    """:func:`orient_normals` before its votes: (normals signed consistently within each
+    component of the graph, label (N,), n_comp, has_fixed (n_comp,): whether a component
+    holds a fixed normal, whose sign it then keeps)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import (
         breadth_first_order,
@@ -424,15 +488,12 @@ def orient_normals(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
     full = coo_matrix((t_cost, (t_rows, t_cols)), shape=(n + 1, n + 1)).tocsr()
     order, parent = breadth_first_order(full, n, directed=False, return_predecessors=True)
     signs = _propagate_signs(order, parent, normals, np.ones(n), n)
-    out = normals * signs[:, None]
-    flip = (outward_votes(positions, out, label, n_comp) < 0) & ~has_fixed
-    out[flip[label]] *= -1.0
-    return out
+    return normals * signs[:, None], label, n_comp, has_fixed
 
 
 def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
                   n_comp: int, *, directions: int = VOTE_DIRECTIONS,
-                  max_points: int = VOTE_MAX_POINTS, seed: int = 0) -> np.ndarray:
+                  max_points: int = VOTE_MAX_POINTS, seed: int = 0, tally: bool = False):
     """How outward each component's (consistently oriented) normals are: (n_comp,) votes,
     > 0 outward, < 0 inward.
 
@@ -478,14 +539,15 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
         facing = nrm[seen] @ d
         votes += np.bincount(lab[seen], facing, n_comp)
         mass += np.bincount(lab[seen], np.abs(facing), n_comp)
+    raw = votes.copy() if tally else None
     # a sheet that looks the same from both sides (a scanned wall, a flat patch) gets no
     # clear vote: by convention it faces up (+y, the world's up), else +z, else +x
     unclear = (np.abs(votes) < TIE_FRACTION * mass) & (mass > 0)
-    if unclear.any():
+    mean = None
+    if unclear.any() or tally:
         mean = np.stack([np.bincount(label, normals[:, a], n_comp) for a in (1, 2, 0)], axis=1)
-        mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
-        first = np.argmax(np.abs(mean) > 0.1, axis=1)
-        votes[unclear] = mean[np.arange(n_comp), first][unclear]
+    if unclear.any():
+        votes[unclear] = sheet_votes(mean)[unclear]
     unseen = votes == 0
     if unseen.any():  # components missing from the sample, or hidden everywhere
         order = np.argsort(label, kind="stable")
@@ -496,10 +558,20 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
             extreme += _extreme_support(p_all, n_all, l_all, starts, dirs[chunk:chunk + 8],
                                         n_comp)
         votes[unseen] = extreme[unseen]
+    if tally:
+        return votes, raw, mass, mean
     return votes
 
 
-def area_radii(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sheet_votes(mean: np.ndarray) -> np.ndarray:
+    """The vote of a component whose views tie (``outward_votes``): its mean normal's
+    (n_comp, 3) (y, z, x) first component over 0.1 in size (up, else +z, else +x)."""
+    mean = mean / np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
+    first = np.argmax(np.abs(mean) > 0.1, axis=1)
+    return mean[np.arange(len(mean)), first]
+
+
+def area_radii(dist: np.ndarray, outliers: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The radius of the area each surfel stands for, and the cap on its radii, from the
     neighbour distances alone (the first half of :func:`surfel_radii`).
 
@@ -511,7 +583,7 @@ def area_radii(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r_area = np.empty(len(dist), np.float64)
     for rows in _row_blocks(len(dist)):  # (rows, k+1) temporaries, not (N, k+1)
         r_area[rows] = _area_radius(dist[rows])
-    return r_area, _radius_limit(r_area, dist[:, _spacing_column(dist.shape[1])])
+    return r_area, _radius_limit(r_area, dist[:, _spacing_column(dist.shape[1])], outliers)
 
 
 def surfel_radii(positions: np.ndarray, normals: np.ndarray, idx: np.ndarray,
@@ -563,11 +635,20 @@ def _spacing_column(m: int) -> int:
     return min(4, m - 1)
 
 
-def _radius_limit(r_area: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+def _radius_limit(r_area: np.ndarray, spacing: np.ndarray, outliers: bool = True) -> np.ndarray:
     """The cap on the radii (:func:`area_radii`). Outliers: a small cluster far from
     everything has its k-th neighbour, hence the kernel, far away; keep its disks within
-    a few of its own spacings, and lone fliers within a few typical radii."""
-    return np.minimum(CLUSTER_RADIUS_FACTOR * spacing, OUTLIER_RADIUS_FACTOR * np.median(r_area))
+    a few of its own spacings, and lone fliers within a few typical radii (``outlier_cap``;
+    outliers=False leaves that cap to the caller, whose median is the whole cloud's)."""
+    if not outliers:
+        return CLUSTER_RADIUS_FACTOR * spacing
+    return np.minimum(CLUSTER_RADIUS_FACTOR * spacing, outlier_cap(r_area))
+
+
+def outlier_cap(r_area: np.ndarray) -> float:
+    """The radii's cap for lone fliers: ``OUTLIER_RADIUS_FACTOR`` x the median of the
+    cloud's r_area (:func:`area_radii`)."""
+    return OUTLIER_RADIUS_FACTOR * np.median(r_area)
 
 
 def _area_radius(dist: np.ndarray) -> np.ndarray:
