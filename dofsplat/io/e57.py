@@ -46,9 +46,10 @@ def read_e57(path, *, material: Material | None = None, k: int | None = None,
     positions, colors, sensors = read_e57_points(path)
     keep = finite_rows(positions, colors, source=str(path))
     positions, colors, sensors = positions[keep], colors[keep], sensors[keep]
-    shifted = _recentre(positions, 1e-4, str(path))  # E57 stores doubles: 0.1 mm
-    sensors = sensors + (shifted[:1] - positions[:1])
-    positions = z_up_to_y_up(shifted)
+    first = positions[:1].copy()
+    positions = _recentre(positions, 1e-4, str(path))  # E57 stores doubles: 0.1 mm (in place)
+    sensors = sensors + (positions[:1] - first)
+    positions = z_up_to_y_up(positions)
     sensors = z_up_to_y_up(sensors)
     surfels = points_to_surfels(positions, colors, None, k=k, viewpoint=sensors,
                                 smooth=smooth, normalise=normalise, source=str(path))

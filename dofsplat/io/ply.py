@@ -553,7 +553,7 @@ def finite_rows(positions, *others, source: str = "", what="points") -> np.ndarr
     keep = np.ones(n, bool)
     for a in (positions, *others):
         if a is not None:
-            keep &= np.all(np.isfinite(np.asarray(a, dtype=np.float64).reshape(n, -1)), axis=1)
+            keep &= np.all(np.isfinite(np.asarray(a).reshape(n, -1)), axis=1)
     dropped = n - int(keep.sum())
     if dropped == n:
         raise DofsplatError(f"{source}: no valid {what} (all {n:,} have NaN or inf values)")
