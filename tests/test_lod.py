@@ -1090,3 +1090,20 @@ def test_a_blurred_back_facing_node_is_dropped_not_descended():
     assert cut[True][1] < 0.2 * cut[False][1]
     assert cut[True][0] < 0.5 * cut[False][0]
     assert cut[True][2] > cut[False][2] - 0.3
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 127, 128, 129, 300, 2_000])
+@pytest.mark.parametrize("small", [1, 3])
+def test_the_depth_first_build_equals_the_whole_array_one(n, small):
+    """``_aggregate_rows`` (depth first, the stored rows and a stack of values: issue 50)
+    against ``whole_array_rows`` (every node's attributes and moments at once, the build
+    before it), bit for bit: trees smaller than the walk's subtrees, and larger."""
+    from dofsplat.lod.hierarchy import ATTRIBUTES, whole_array_rows
+
+    rng = np.random.default_rng(n)
+    s = ds.Surfels(positions=rng.standard_normal((n, 3)), normals=rng.standard_normal((n, 3)),
+                   radius=rng.uniform(0.01, 0.1, n), colors=rng.uniform(0.0, 1.0, (n, 3)),
+                   opacity=rng.uniform(0.5, 1.0, n), weight=rng.uniform(0.5, 1.5, n))
+    tree = build_hierarchy(s, small=small)
+    for name, twin in zip(ATTRIBUTES, whole_array_rows(s, tree.order, small)):
+        assert np.array_equal(getattr(tree, name), twin), name

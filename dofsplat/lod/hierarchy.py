@@ -327,17 +327,12 @@ def build_hierarchy(surfels: Surfels, progress: bool = False,
 
     # top down: median splits, level by level (each level's nodes in parallel)
     keys = np.ascontiguousarray(np.hstack([positions, surfels.normals]), np.float32)
-    m_nodes = 2 * n - 1
     order = np.arange(n, dtype=np.int32)
-    start = np.empty(m_nodes, np.int32)
-    count = np.empty(m_nodes, np.int32)
     ids = np.zeros(1, np.int64)
     starts = np.zeros(1, np.int64)
     counts = np.full(1, n, np.int64)
     bar = _progress(progress, n)
     while ids.size:
-        start[ids] = starts
-        count[ids] = counts
         inner = counts > 1
         ids, starts, counts = ids[inner], starts[inner], counts[inner]
         if not ids.size:
@@ -351,33 +346,16 @@ def build_hierarchy(surfels: Surfels, progress: bool = False,
             bar.update(1)
     if bar is not None:
         bar.close()
+    del keys, ids, starts, counts
 
-    # bottom up: spheres, cones and prefiltered attributes
-    center = np.empty((m_nodes, 3), np.float32)
-    bound = np.empty(m_nodes, np.float32)
-    extent = np.empty(m_nodes, np.float32)
-    position = np.empty((m_nodes, 3), np.float32)
-    normal = np.empty((m_nodes, 3), np.float32)
-    cone = np.empty(m_nodes, np.float32)
-    color = np.empty((m_nodes, 3), np.float32)
-    opacity = np.empty(m_nodes, np.float32)
-    area = np.empty(m_nodes, np.float32)
-    sigma_r2 = np.empty(m_nodes, np.float32)
-    lod_cov = np.empty((m_nodes, 6), np.float32)
-    color_grad = np.empty((m_nodes, 6), np.float32)
-    color_detail = np.empty(m_nodes, np.float32)
-    _node_spheres(order, start, count, positions, ru, rv, center, extent)
-    _aggregate(order, start, count, positions, surfels.normals, ru, rv, weight,
-               surfels.colors, surfels.opacity, center, bound, extent, position, normal, cone,
-               color, opacity, area, sigma_r2, lod_cov, color_grad, color_detail)
-    # keep the rows of the nodes of more than `small` surfels (a leaf is its surfel, a
-    # small node is computed from its surfels when needed), in preorder (tree_rows)
-    keep = count > small
+    # bottom up: spheres, cones and prefiltered attributes, for the nodes of more than
+    # `small` surfels only (a leaf is its surfel, a small node is computed from its surfels
+    # when needed), in preorder (tree_rows); depth first, holding only those rows
+    rows = attribute_rows(stored_nodes(n, small))
+    _aggregate_rows(order, positions, surfels.normals, ru, rv, weight, surfels.colors,
+                    surfels.opacity, small, *rows)
     tree = Hierarchy(order=order, fingerprint=fingerprint(surfels), small=small,
-                     **{name: a[keep] for name, a in zip(
-                         ATTRIBUTES, (center, bound, extent, position, normal, cone, color,
-                                      opacity, area, sigma_r2, lod_cov, color_grad,
-                                      color_detail))})
+                     **dict(zip(ATTRIBUTES, rows)))
     tree.build_seconds = time.perf_counter() - t0  # informational, not stored
     return tree
 
@@ -527,6 +505,23 @@ def _sphere(order, s, e, positions, ru, rv):
         dz = positions[k, 2] - cz
         rad = max(rad, math.sqrt(dx * dx + dy * dy + dz * dz) + max(ru[k], rv[k]))
     return cx, cy, cz, rad
+
+
+def whole_array_rows(surfels: Surfels, order: np.ndarray, small: int):
+    """The stored rows (``attribute_rows``' arrays) of the tree over order's surfels, the
+    way the build computed them before issue 50: every node's attributes and float64
+    moments in arrays of 2N - 1 rows (``_node_spheres``, ``_aggregate``, about 640 bytes a
+    surfel), the stored ones taken after. The twin of ``_aggregate_rows`` for the tests."""
+    n = len(order)
+    start, count = tree_shape(n)
+    m_nodes = 2 * n - 1
+    whole = [np.empty((m_nodes,) + a.shape[1:], np.float32) for a in attribute_rows(1)]
+    ru, rv, weight = _radii_weight(surfels)
+    _node_spheres(order, start, count, surfels.positions, ru, rv, whole[0], whole[2])
+    _aggregate(order, start, count, surfels.positions, surfels.normals, ru, rv, weight,
+               surfels.colors, surfels.opacity, *whole)
+    keep = count > small
+    return tuple(a[keep] for a in whole)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -816,6 +811,158 @@ def _aggregate(order, start, count, positions, normals, ru, rv, weight, colors, 
             cov[i, d] = v[V_COV + d]
         for d in range(9):
             ccov[i, d] = v[V_CCOV + d]
+
+
+# -- the build's bottom-up pass, depth first (issue 50) ---------------------------------------
+# ``_aggregate`` holds every node's attributes and float64 moments, about 640 bytes a surfel
+# at once; a depth-first walk holds only the stored rows and a stack of values (a node's
+# children are needed once, by it), and gives the same rows bit for bit: a child's values
+# are taken as ``_load`` would read them back (``_as_stored``: the attributes rounded to
+# float32, the moments as they are), and each node's sphere is ``_sphere``'s, rounded as
+# ``_node_spheres`` stores it.
+SUBTREE_DEPTH = 7  # the walk's top levels: 2^7 subtrees walked in parallel below them
+WALK_STACK = 128  # frames and values on a walk's stacks (the tree's depth is ~log2 N < 31)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _push_values(vals, j, v):
+    """Values v (``_combine``'s tuple) into row j of a walk's value stack, as stored."""
+    for d in range(V_GEO):
+        vals[j, d] = _f32(v[d])
+    for d in range(V_GEO, N_VALUES):
+        vals[j, d] = v[d]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _stacked_values(vals, j):
+    """Row j of a walk's value stack as ``_combine``'s tuple."""
+    return (vals[j, 0], vals[j, 1], vals[j, 2], vals[j, 3], vals[j, 4], vals[j, 5],
+            vals[j, 6], vals[j, 7], vals[j, 8], vals[j, 9], vals[j, 10], vals[j, 11],
+            vals[j, 12], vals[j, 13], vals[j, 14], vals[j, 15], vals[j, 16], vals[j,
+            17], vals[j, 18], vals[j, 19], vals[j, 20], vals[j, 21], vals[j, 22],
+            vals[j, 23], vals[j, 24], vals[j, 25], vals[j, 26], vals[j, 27], vals[j,
+            28], vals[j, 29], vals[j, 30], vals[j, 31], vals[j, 32], vals[j, 33],
+            vals[j, 34], vals[j, 35], vals[j, 36], vals[j, 37], vals[j, 38], vals[j,
+            39], vals[j, 40], vals[j, 41], vals[j, 42], vals[j, 43], vals[j, 44],
+            vals[j, 45], vals[j, 46], vals[j, 47], vals[j, 48], vals[j, 49], vals[j,
+            50], vals[j, 51], vals[j, 52], vals[j, 53], vals[j, 54])
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk_rows(i0, s0, m0, depth0, row0, stop_depth, tasks, task_vals, order, positions,
+               normals, ru, rv, weight, colors, alpha, small, center, bound, extent, position,
+               normal, cone, color, opacity, area, sigma_r2, lod_cov, color_grad, color_detail,
+               out, out_j):
+    """Node i0's subtree (first leaf s0, m0 surfels, at depth0), depth first: each stored
+    node's attributes (more than ``small`` surfels) into its row, from row0 on in
+    preorder; the subtree's root values into out[out_j] (``_push_values``). Below
+    stop_depth the subtrees are not walked: the nodes at that depth take the values of
+    task_vals in preorder (the next of tasks' rows), and their stored nodes' rows are
+    skipped (``stored_nodes``). Returns the row after the subtree's last."""
+    st = np.empty((WALK_STACK, 5), np.int64)  # frames: node, first leaf, count, depth, step
+    rows = np.empty(WALK_STACK, np.int64)
+    vals = np.empty((WALK_STACK, N_VALUES), np.float64)
+    top = 1
+    n_vals = 0
+    row = row0
+    task = 0
+    st[0, 0], st[0, 1], st[0, 2], st[0, 3], st[0, 4] = i0, s0, m0, depth0, 0
+    while top > 0:
+        f = top - 1
+        i, s, m, depth, step = st[f, 0], st[f, 1], st[f, 2], st[f, 3], st[f, 4]
+        if step == 0:
+            if m == 1:
+                _push_values(vals, n_vals, _surfel_leaf(order[s], positions, normals, ru, rv,
+                                                        weight, colors, alpha))
+                n_vals += 1
+                top -= 1
+                continue
+            if depth == stop_depth:  # a subtree walked on its own
+                for d in range(N_VALUES):
+                    vals[n_vals, d] = task_vals[task, d]
+                n_vals += 1
+                task += 1
+                row += stored_nodes(m, small)
+                top -= 1
+                continue
+            rows[f] = -1
+            if m > small:
+                rows[f] = row
+                row += 1
+        h = m // 2
+        if step == 0 or step == 1:  # the left child, then the right
+            st[f, 4] = step + 1
+            c = top
+            if step == 0:
+                st[c, 0], st[c, 1], st[c, 2] = i + 1, s, h
+            else:
+                st[c, 0], st[c, 1], st[c, 2] = i + 2 * h, s + h, m - h
+            st[c, 3], st[c, 4] = depth + 1, 0
+            top += 1
+            continue
+        cx, cy, cz, rad = _sphere(order, s, s + m, positions, ru, rv)
+        v = _combine(_stacked_values(vals, n_vals - 2), _stacked_values(vals, n_vals - 1),
+                     _f32(cx), _f32(cy), _f32(cz), _f32(rad), True)
+        n_vals -= 2
+        if rows[f] >= 0:
+            store_attributes(v, rows[f], center, bound, extent, position, normal, cone, color,
+                             opacity, area, sigma_r2, lod_cov, color_grad, color_detail)
+        _push_values(vals, n_vals, v)
+        n_vals += 1
+        top -= 1
+    for d in range(N_VALUES):
+        out[out_j, d] = vals[0, d]
+    return row
+
+
+@numba.njit(cache=True, nogil=True)
+def _subtrees(n, depth, small):
+    """The nodes at this depth of the tree of n surfels, in preorder: (K, 4) int64 rows
+    (node, first leaf, count, first stored row of its subtree)."""
+    out = np.empty((1 << depth, 4), np.int64)
+    st = np.empty((WALK_STACK, 4), np.int64)
+    st[0, 0], st[0, 1], st[0, 2], st[0, 3] = 0, 0, n, 0
+    top = 1
+    k = 0
+    row = 0
+    while top > 0:
+        top -= 1
+        i, s, m, d = st[top, 0], st[top, 1], st[top, 2], st[top, 3]
+        if m == 1:
+            continue
+        if d == depth:
+            out[k, 0], out[k, 1], out[k, 2], out[k, 3] = i, s, m, row
+            row += stored_nodes(m, small)
+            k += 1
+            continue
+        if m > small:
+            row += 1
+        h = m // 2
+        st[top, 0], st[top, 1], st[top, 2], st[top, 3] = i + 2 * h, s + h, m - h, d + 1
+        st[top + 1, 0], st[top + 1, 1], st[top + 1, 2], st[top + 1, 3] = i + 1, s, h, d + 1
+        top += 2
+    return out[:k]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _aggregate_rows(order, positions, normals, ru, rv, weight, colors, alpha, small, center,
+                    bound, extent, position, normal, cone, color, opacity, area, sigma_r2,
+                    lod_cov, color_grad, color_detail):
+    """The stored rows of the tree over order's surfels (``_aggregate``'s values, the rows
+    of ``tree_rows``), depth first: the subtrees below ``SUBTREE_DEPTH`` in parallel, then
+    the levels above them."""
+    n = order.shape[0]
+    tasks = _subtrees(n, SUBTREE_DEPTH, small)
+    task_vals = np.empty((tasks.shape[0], N_VALUES), np.float64)
+    for t in numba.prange(tasks.shape[0]):
+        _walk_rows(tasks[t, 0], tasks[t, 1], tasks[t, 2], SUBTREE_DEPTH, tasks[t, 3], -1,
+                   tasks, task_vals, order, positions, normals, ru, rv, weight, colors, alpha,
+                   small, center, bound, extent, position, normal, cone, color, opacity, area,
+                   sigma_r2, lod_cov, color_grad, color_detail, task_vals, t)
+    root = np.empty((1, N_VALUES), np.float64)
+    _walk_rows(0, 0, n, 0, 0, SUBTREE_DEPTH, tasks, task_vals, order, positions, normals, ru,
+               rv, weight, colors, alpha, small, center, bound, extent, position, normal, cone,
+               color, opacity, area, sigma_r2, lod_cov, color_grad, color_detail, root, 0)
 
 
 # -- the nodes that are not stored ------------------------------------------------------------
