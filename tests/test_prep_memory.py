@@ -142,3 +142,43 @@ def test_the_preparation_peaks_under_800_bytes_a_point(monkeypatch):
     finally:
         tracemalloc.stop()
     assert peak / len(pts) < 800, f"{peak / len(pts):.0f} bytes a point"
+
+
+def unique_rows_twin(pts, cols, nrm):
+    """_merge_duplicates as it was (np.unique of the rows as bytes, with its inverse)."""
+    keys = np.ascontiguousarray(pts).view(np.dtype((np.void, 24))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.sort(first)
+    remap = np.empty(len(first), np.int64)
+    remap[np.argsort(first)] = np.arange(len(first))
+    group = remap[inverse]
+    counts = np.bincount(group, minlength=len(order)).astype(np.float64)
+    out_cols = np.stack([np.bincount(group, cols[:, c], len(order)) / counts
+                         for c in range(3)], axis=1).astype(np.float32)
+    return pts[order], out_cols, nrm[order], order
+
+
+def test_merging_duplicates_by_hash_equals_np_unique():
+    """_merge_duplicates (a hash per row, sorted, rows compared within equal hashes: issue
+    50) against the np.unique of the rows it replaced: many copies of a few rows, -0.0 and
+    0.0 apart (different bytes), and a run of equal hashes forced by a bad hash."""
+    rng = np.random.default_rng(5)
+    base = np.round(rng.uniform(-1.0, 1.0, (3000, 3)), 2)
+    pts = base[rng.integers(0, 3000, 20_000)]
+    pts[:50] = 0.0
+    pts[50:60] = -0.0
+    cols = rng.uniform(0.0, 1.0, (20_000, 3)).astype(np.float32)
+    nrm = rng.standard_normal((20_000, 3))
+    fast = pc._merge_duplicates(pts, cols, nrm, "test")
+    for a, b in zip(fast, unique_rows_twin(pts, cols, nrm)):
+        assert np.array_equal(a, b)
+    first, duplicates = pc.first_rows(pts)
+    assert duplicates == 20_000 - len(fast[3])
+    # every row in one run of equal hashes: the rows themselves decide
+    first_all = np.empty(len(pts), np.int64)
+    u = pts.view(np.uint64)
+    same = np.zeros(len(pts), np.uint64)
+    assert pc._first_of_runs(u, same, np.arange(len(pts)), first_all) == duplicates
+    assert np.array_equal(first_all, first)
+    assert pc._merge_duplicates(base, cols[:3000], nrm[:3000], "test")[3] is None
