@@ -3,6 +3,7 @@
     python bench/prep_memory.py /tmp/synth1m.laz --save /tmp/prep_ref.npz   # before a change
     python bench/prep_memory.py /tmp/synth1m.laz --check /tmp/prep_ref.npz  # after it
     python bench/prep_memory.py /tmp/synth1m.laz --stages                   # RSS per stage
+    python bench/prep_memory.py /tmp/synth20m.laz --render "--size 1920x1080 --aperture 5"
 
 The file is loaded with ``dofsplat.io.load(path, cache="off")`` (the preparation of
 ``prep.pointcloud.points_to_surfels``). ``--save`` writes the surfel arrays (positions,
@@ -10,7 +11,11 @@ normals, radius, colors, opacity, weight) to an .npz; ``--check`` compares them 
 ``np.array_equal`` (a change that lowers memory must not change a bit). ``--stages`` samples
 the process's resident set every 5 ms and prints the highest it reached during each stage
 of the preparation (the stage functions are wrapped), in GB and bytes a point; for the
-whole run use ``/usr/bin/time -v`` (Maximum resident set size).
+whole run use ``/usr/bin/time -v`` (Maximum resident set size). ``--render ARGS`` runs a
+first render instead, ``dofsplat render PATH ARGS --no-cache --lod-cache off`` in this
+process (the model prepared and its tree built afresh; the kernels from their cache), and
+prints the peak of its stages: reading the file, merging duplicates, the surfels (in chunks
+past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame.
 """
 
 from __future__ import annotations
@@ -95,13 +100,65 @@ def wrap_stages(sampler: StageSampler):
     wrap(normalise, "rendered_level", "normalise: rendered_level")
 
 
+def wrap_render_stages(sampler: StageSampler):
+    """Wrap a first render's stages (``--render``); those an older checkout lacks are left
+    out, so that the script measures it too (PYTHONPATH=that checkout)."""
+    import importlib
+
+    def wrap(module, name, label):
+        try:
+            module = importlib.import_module(module)
+            fn = getattr(module, name)
+        except (ImportError, AttributeError):
+            return
+
+        @functools.wraps(fn)
+        def staged(*args, **kwargs):
+            with sampler.under(label):
+                return fn(*args, **kwargs)
+
+        setattr(module, name, staged)
+
+    wrap("dofsplat.io.las", "read_las_points", "read the file (LAS/LAZ)")
+    wrap("dofsplat.prep.pointcloud", "_merge_duplicates", "merge duplicates")
+    wrap("dofsplat.prep.pointcloud", "points_to_surfels", "surfels")
+    # (the normalisation's level renders the model: a tree built within "surfels" is its)
+    wrap("dofsplat.lod", "build_hierarchy", "LOD tree")
+    wrap("dofsplat.lod.cache", "build_hierarchy", "LOD tree")
+
+
+def render_stages(path: str, args: str) -> None:
+    import shlex
+    import tempfile
+
+    from dofsplat.cli import main as cli
+
+    sampler = StageSampler()
+    wrap_render_stages(sampler)
+    with tempfile.TemporaryDirectory() as tmp, sampler:
+        t0 = time.perf_counter()
+        rc = cli(["render", path, "-o", f"{tmp}/frame.png", "--no-cache", "--lod-cache", "off",
+                  *shlex.split(args)])
+        seconds = time.perf_counter() - t0
+    print(f"{path}: first render in {seconds:.1f} s (exit {rc}); peak RSS by stage "
+          "(after X: the time after it, up to the next)")
+    for label, peak in sampler.peaks.items():
+        label = "the frame (after the tree)" if label == "after LOD tree" else label
+        print(f"  {label:28s} {peak / 1e9:6.2f} GB")
+    print(f"  {'the whole run':28s} {max(sampler.peaks.values()) / 1e9:6.2f} GB")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("path")
     parser.add_argument("--save", help="write the surfel arrays to this .npz")
     parser.add_argument("--check", help="compare the surfel arrays with this .npz")
     parser.add_argument("--stages", action="store_true", help="peak RSS per stage")
+    parser.add_argument("--render", metavar="ARGS",
+                        help="a first render with these dofsplat render options: its stages")
     args = parser.parse_args()
+    if args.render is not None:
+        return render_stages(args.path, args.render)
 
     from dofsplat.io import load
 

@@ -121,3 +121,41 @@ def test_chunks_bound_the_preparations_memory(monkeypatch):
     finally:
         tracemalloc.stop()
     assert peak / len(pts) < 150, f"{peak / len(pts):.0f} bytes a point"
+
+
+def test_chunks_on_a_dask_cluster_give_the_same_surfels():
+    """Each chunk's steps are a function of the cloud and the chunk alone: on two Dask
+    workers (threads here) the surfels are the in-process ones bit for bit."""
+    distributed = pytest.importorskip("dask.distributed")
+    pts, colors = terrain(30_000, seed=5)
+    here = prepare(pts, colors, chunk=5_000, normalise="object")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client, chunks.on_cluster(client):
+        there = prepare(pts, colors, chunk=5_000, normalise="object")
+    for name in ("positions", "normals", "radius", "colors", "weight"):
+        assert np.array_equal(getattr(there, name), getattr(here, name)), name
+    assert chunks._CLIENT is None  # (the block's client is let go)
+
+
+def test_prepare_on_local_workers_writes_the_same_file(tmp_path, monkeypatch, capsys):
+    """`dofsplat prepare --workers 2`: the same .dofsplat file, byte for byte, as in this
+    process (the chunks made small, so that the 30,000 points are six of them)."""
+    pytest.importorskip("dask.distributed")
+    from plyfile import PlyData, PlyElement
+
+    from dofsplat.cli import main
+
+    pts, _ = terrain(30_000, seed=6)
+    vertex = np.zeros(len(pts), [("x", "f8"), ("y", "f8"), ("z", "f8")])
+    vertex["x"], vertex["y"], vertex["z"] = pts.T
+    cloud = tmp_path / "cloud.ply"
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(cloud))
+    monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    for name, extra in (("here", []), ("workers", ["--workers", "2"])):
+        assert main(["prepare", str(cloud), "-o", str(tmp_path / f"{name}.dofsplat"), "-q",
+                     "--no-cache", *extra]) == 0
+    assert (tmp_path / "here.dofsplat").read_bytes() == \
+        (tmp_path / "workers.dofsplat").read_bytes()
+    assert main(["prepare", str(cloud), "--workers", "2", "--scheduler", "tcp://x:1"]) == 2
+    assert "not both" in capsys.readouterr().err

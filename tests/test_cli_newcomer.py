@@ -421,7 +421,7 @@ def test_animate_caps_local_workers_at_the_cores(monkeypatch, capsys):
     """--workers 64 on 2 cores started 64 processes and printed 127 lines of Dask's
     warnings; now one note and as many workers as cores."""
     pytest.importorskip("dask.distributed")
-    from dofsplat.cli import animate
+    from dofsplat.cli import cluster as cluster_options
 
     made = {}
 
@@ -433,10 +433,10 @@ def test_animate_caps_local_workers_at_the_cores(monkeypatch, capsys):
 
     monkeypatch.setattr(dask.distributed, "LocalCluster", Cluster)
     monkeypatch.setattr(dask.distributed, "Client", lambda cluster: "client")
-    monkeypatch.setattr(animate, "available_cores", lambda: 2)
+    monkeypatch.setattr(cluster_options, "available_cores", lambda: 2)
     args = cli.build_parser().parse_args(["animate", "--demo", "-o", "x", "--frames", "2",
                                           "--workers", "64"])
-    client, cluster = animate._client(args)
+    client, cluster = cluster_options.client_for(args)
     assert client == "client" and isinstance(cluster, Cluster)
     assert made["workers"] == 2 and made["env"]["NUMBA_NUM_THREADS"] == "1"
     assert capsys.readouterr().err == ("dofsplat: --workers 64 is more than the 2 cores here: "

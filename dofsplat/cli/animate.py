@@ -4,15 +4,15 @@ move as a video or a folder of frames, in this process or on a Dask cluster
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
 from ..errors import DofsplatError
+from .cluster import add_cluster_options, check_cluster_args, client_for, close
 from .framing import (check_arguments, lens_from_args, photographic_camera,
                       settings_from_args)
 from .options import (EXIT_OK, UNITS, HelpFormatter, add_input_options, add_view_options,
-                      finite_number, non_negative, positive_int, positive_number)
+                      finite_number, non_negative, positive_number)
 
 _EXAMPLES = """\
 examples:
@@ -74,11 +74,7 @@ def add_parser(commands) -> None:
                           "linear")
     seq.add_argument("--frame-format", choices=("png", "npy", "exr"), default="png",
                      help="the frames' format in a folder (default: png)")
-    seq.add_argument("--workers", metavar="N", type=positive_int,
-                     help="render on a local Dask cluster of N processes, at most one per "
-                          "core (default: in this process, frame after frame)")
-    seq.add_argument("--scheduler", metavar="ADDRESS",
-                     help="render on an existing Dask cluster, e.g. tcp://host:8786")
+    add_cluster_options(seq, "render")
     add_input_options(p)
     add_view_options(p, "render")
     p.set_defaults(run=run)
@@ -97,8 +93,6 @@ def run(args) -> int:
         keys, easing_file = sequence.load_keyframes(args.keyframes)
         easing = easing_file if args.easing == "smooth" else args.easing
     keys = keys + _shortcut_keyframes(args, sequence.Keyframe)
-    if args.workers or args.scheduler:
-        _need_dask()
     if out.suffix.lower() == ".mp4":
         _need_av()
 
@@ -112,7 +106,7 @@ def run(args) -> int:
     if args.focus_at is not None and settings.dof:
         keys = [sequence.Keyframe(0.0, {"focus_at": tuple(args.focus_at)})] + keys
 
-    client, cluster = _client(args)
+    client, cluster = client_for(args)
     log = None if args.quiet else (lambda m: print(f"dofsplat: {m}", file=sys.stderr,
                                                    flush=True))
     try:
@@ -121,10 +115,7 @@ def run(args) -> int:
                          client=client, progress=not args.quiet and sys.stderr.isatty(),
                          log=log)
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
+        close(client, cluster)
     if not args.quiet:
         # (H.264 wants even sizes: an .mp4 is a pixel larger where the frame size is odd)
         w, h = camera.width, camera.height
@@ -170,12 +161,7 @@ def _check(args) -> None:
     if args.focus_at is not None and args.focus_from is not None:
         raise DofsplatError("--focus-at focuses the first frame: give it or --focus-from, "
                             "not both")
-    if args.scheduler is not None and not args.scheduler.strip():
-        raise DofsplatError("--scheduler needs the Dask scheduler's address, e.g. "
-                            "tcp://host:8786 (without it, frames render in this process)")
-    if args.workers and args.scheduler:
-        raise DofsplatError("give --workers (a local cluster) or --scheduler (an existing "
-                            "one), not both")
+    check_cluster_args(args, "frames render in this process")
     if args.no_dof and (args.focus_from is not None or args.aperture_from is not None):
         raise DofsplatError("--no-dof has no lens to change: drop --focus-from/--aperture-from")
     if args.keyframes is not None and not Path(args.keyframes).is_file():
@@ -201,49 +187,6 @@ def _shortcut_keyframes(args, Keyframe) -> list:
     if args.orbit is not None:
         first["orbit"], last["orbit"] = (0.0,), (args.orbit,)
     return [Keyframe(0.0, first), Keyframe(1.0, last)] if first else []
-
-
-def _client(args):
-    """(client, cluster) for --workers or --scheduler, else (None, None)."""
-    if not (args.workers or args.scheduler):
-        return None, None
-    from dask.distributed import Client, LocalCluster
-
-    if args.scheduler:
-        try:
-            return Client(args.scheduler, timeout="10s"), None
-        except (OSError, TimeoutError, ValueError) as e:  # unreachable, or malformed
-            raise DofsplatError(f"cannot reach the Dask scheduler at {args.scheduler}: "
-                                f"{e}") from None
-    cores = available_cores()
-    if args.workers > cores:
-        # more processes than cores only share them, each starting its own interpreter
-        # and kernels (64 on 2 cores printed 127 lines of Dask's warnings)
-        if not args.quiet:
-            print(f"dofsplat: --workers {args.workers} is more than the {cores} core"
-                  f"{'s' * (cores != 1)} here: using {cores}", file=sys.stderr)
-        args.workers = cores
-    threads = max(1, cores // args.workers)
-    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None,
-                           env={"NUMBA_NUM_THREADS": str(threads), "TQDM_DISABLE": "1"})
-    return Client(cluster), cluster
-
-
-def available_cores() -> int:
-    """The cores this process may run on (its affinity where the system says)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
-def _need_dask() -> None:
-    try:
-        import dask.distributed  # noqa: F401
-    except ImportError:
-        raise DofsplatError("--workers and --scheduler need Dask: pip install "
-                            "'dofsplat[animate]'") from None
 
 
 def _need_av() -> None:

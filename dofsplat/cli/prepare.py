@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import DofsplatError
+from .cluster import add_cluster_options, check_cluster_args, client_for, close
 from .options import (EXIT_OK, MODEL_EXTENSIONS, HelpFormatter, add_input_options,
                       loader_options, prep_cache)
 
@@ -35,6 +36,11 @@ def add_parser(commands) -> None:
     prepare.add_argument("-q", "--quiet", action="store_true",
                          help="no progress bars, no summary line")
     add_input_options(prepare)
+    cluster = prepare.add_argument_group(
+        "a cluster", "A point cloud of more than a million points is prepared in chunks "
+        "(each with a halo of its neighbours, bounded memory); they can run on Dask workers, "
+        "with the same result.")
+    add_cluster_options(cluster, "prepare the chunks")
     prepare.set_defaults(run=run)
 
 
@@ -46,6 +52,7 @@ def run(args) -> int:
     from ..io import check_writable_path, load
     from ..io.model_file import EXTENSION, write_model_file
     from ..lod.cache import cached_hierarchy
+    from ..prep.chunks import on_cluster
 
     source = Path(args.input)
     out = Path(args.output) if args.output else _default_output(source, EXTENSION)
@@ -55,9 +62,15 @@ def run(args) -> int:
     check_writable_path(out, "a model file name")
     if source.exists() and out.resolve() == source.resolve():
         raise DofsplatError(f"the output {out} would overwrite the input")
+    check_cluster_args(args, "the chunks are prepared in this process")
     progress = not args.quiet and sys.stderr.isatty()
     t0 = time.perf_counter()
-    model = load(source, cache=prep_cache(args), **loader_options(args))
+    client, cluster = client_for(args)
+    try:
+        with on_cluster(client):
+            model = load(source, cache=prep_cache(args), **loader_options(args))
+    finally:
+        close(client, cluster)
     if isinstance(model, Gaussians):
         raise DofsplatError(f"{source} is a Gaussian scene: it needs no preparation (render "
                             "it as it is)")

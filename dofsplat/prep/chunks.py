@@ -35,6 +35,7 @@ iterations reach further than the halo); ``tests/test_chunks.py`` bounds the dif
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from dataclasses import replace
 
@@ -42,19 +43,55 @@ from ..jit import numba
 import numpy as np
 
 from ..surfels import Surfels
-from .pointcloud import MID_GREY, TIE_FRACTION, outlier_cap, sheet_votes, surfel_stages
+from .rules import TIE_FRACTION, outlier_cap, sheet_votes
 
 HALO_SPACINGS = 8.0  # a chunk's halo reaches this x its median distance to the k-th neighbour
 HALO_SAMPLE = 4096  # chunk points whose k-th neighbour sets that distance
 LEVEL_CHUNKS = 4  # chunks on which the normalisation's level is read
 
 
-def chunked_surfels(pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool, normalise: str,
-                    chunk_points: int, progress: bool, source: str) -> Surfels:
+_CLIENT = None  # a Dask client whose workers take the chunks (``on_cluster``), or None
+
+
+@contextlib.contextmanager
+def on_cluster(client):
+    """Within this block, the chunks' steps run on the workers of ``client`` (a
+    ``dask.distributed.Client``; None: in this process): ``dofsplat prepare --workers N``
+    or ``--scheduler ADDRESS``. The surfels are the same, each chunk's steps being a
+    function of the cloud and the chunk alone."""
+    global _CLIENT
+    previous, _CLIENT = _CLIENT, client
+    try:
+        yield
+    finally:
+        _CLIENT = previous
+
+
+def each_chunk(fn, shared: tuple, chunk_args):
+    """fn(*shared, *args) for each chunk's args, in order, one at a time: in this process,
+    or on the cluster's workers (``on_cluster``: shared sent once to each, the chunks
+    submitted together and their results taken in order, each let go when read)."""
+    if _CLIENT is None:
+        for args in chunk_args:
+            yield fn(*shared, *args)
+        return
+    remote = [_CLIENT.scatter(x, broadcast=True) if isinstance(x, (np.ndarray, Surfels))
+              else x for x in shared]
+    futures = [_CLIENT.submit(fn, *remote, *args, pure=False) for args in chunk_args]
+    for i, future in enumerate(futures):
+        yield future.result()
+        futures[i] = None
+        future.release()
+
+
+def chunked_surfels(stages, pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool,
+                    normalise: str, chunk_points: int, progress: bool, source: str) -> Surfels:
     """``points_to_surfels`` (which see) of points without duplicates, chunk by chunk (the
-    module docstring): Surfels. Each chunk is ``surfel_chunk``'s and then
-    ``weight_chunk``'s, functions of the cloud and the chunk alone (the joins run after
-    them), so the result does not depend on the order the chunks are taken in."""
+    module docstring): Surfels. stages: ``pointcloud.surfel_stages``, each chunk's steps
+    (passed in: ``pointcloud`` calls this module); cols (N, 3) the points' colours. Each
+    chunk is ``surfel_chunk``'s and then ``weight_chunk``'s, functions of the cloud and the
+    chunk alone (the joins run after them), so the result does not depend on the order the
+    chunks are taken in."""
     n = len(pts)
     order, bounds = chunk_order(pts, chunk_points)
     out_pos = np.empty((n, 3), np.float32)
@@ -69,9 +106,10 @@ def chunked_surfels(pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool, nor
     tallies, fixed, halos = [], [], []
     n_comp = 0
     with _chunk_bar(2 * n if normalise != "none" else n, source, progress) as bar:
-        for a, b in bounds:
+        chunk_args = ((np.sort(order[a:b]), k, smooth) for a, b in bounds)
+        for (a, b), c in zip(bounds, each_chunk(surfel_chunk, (stages, pts, nrm, vp),
+                                                chunk_args)):
             own = np.sort(order[a:b])
-            c = surfel_chunk(pts, nrm, vp, own, k, smooth)
             out_pos[own], out_nrm[own] = c["positions"], c["normals"]
             r_area[own], r_capped[own], r_radius[own] = c["r_area"], c["r_capped"], c["radius"]
             if c["label"] is not None:
@@ -100,8 +138,7 @@ def chunked_surfels(pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool, nor
         out_rad = r_radius.astype(np.float32)
         out_w = ((r_capped / r_radius) ** 2).astype(np.float32)
         del r_radius, r_capped
-        colors = np.full((n, 3), MID_GREY, np.float32) if cols is None else cols
-        surfels = Surfels(positions=out_pos, normals=out_nrm, radius=out_rad, colors=colors,
+        surfels = Surfels(positions=out_pos, normals=out_nrm, radius=out_rad, colors=cols,
                           weight=out_w)
         del out_pos, out_nrm, out_rad, out_w
         if normalise == "none":
@@ -110,9 +147,11 @@ def chunked_surfels(pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool, nor
         levels = []
         reads = set(np.linspace(0, len(bounds) - 1, min(LEVEL_CHUNKS, len(bounds)))
                     .round().astype(int).tolist())
-        for i, (a, b) in enumerate(bounds):
-            own = np.sort(order[a:b])
-            weight[own], level = weight_chunk(surfels, pts, own, k, normalise, i in reads)
+        chunk_args = ((np.sort(order[a:b]), k, normalise, i in reads)
+                      for i, (a, b) in enumerate(bounds))
+        for (a, b), (w, level) in zip(bounds, each_chunk(weight_chunk, (surfels, pts),
+                                                         chunk_args)):
+            weight[np.sort(order[a:b])] = w
             if level is not None:
                 levels.append((level, b - a))
             bar.update(b - a)
@@ -120,9 +159,9 @@ def chunked_surfels(pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool, nor
     return replace(surfels, weight=(weight / level).astype(np.float32))
 
 
-def surfel_chunk(pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) -> dict:
-    """One chunk's steps 1-4 (``pointcloud.surfel_stages``) on its points (own: their rows,
-    sorted) and its halo: a dict of its points' positions, normals (as propagated, before
+def surfel_chunk(stages, pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) -> dict:
+    """One chunk's steps 1-4 (stages: ``pointcloud.surfel_stages``) on its points (own:
+    their rows, sorted) and its halo: a dict of its points' positions, normals (as propagated, before
     the votes), radius, r_area and r_capped (before the outlier cap), label (their
     components, or None where the normals were all given or turned towards vp), and the
     components' tally and fixed, and the halo's rows, components and normals (for
@@ -130,7 +169,7 @@ def surfel_chunk(pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) -> dict:
     ids = halo_ids(pts, own, k)
     mine = np.searchsorted(ids, own)
     sub_vp = vp if vp is None or vp.ndim == 1 else vp[ids]
-    p, nm, rad, _, orientation, (area, limit) = surfel_stages(
+    p, nm, rad, _, orientation, (area, limit) = stages(
         pts[ids], None if nrm is None else nrm[ids], sub_vp, k, smooth, vote=False,
         outliers=False)
     out = {"positions": p[mine], "normals": nm[mine], "radius": rad[mine],

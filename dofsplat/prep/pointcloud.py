@@ -53,6 +53,7 @@ import numpy as np
 from ..errors import DofsplatError
 from ..surfels import Surfels
 from .neighbours import QUERY_CHUNK, as_index_array, fibonacci_directions, nearest_neighbours
+from .rules import OUTLIER_RADIUS_FACTOR, TIE_FRACTION, outlier_cap, sheet_votes  # noqa: F401
 
 DEFAULT_K = 24  # neighbours for PCA, smoothing and density: the lion scan's 1 cm
 # quantisation needs that many for a steady plane fit (of its interior pixels, 0.93 / 0.96
@@ -67,12 +68,10 @@ MAX_K = 256
 ORIENT_K = 6  # neighbours per point in the orientation graph (a sparser graph is faster)
 DENSITY_BANDWIDTH = 2.0  # R / s of the density kernel (module docstring)
 CLUSTER_RADIUS_FACTOR = 2.0  # radius <= this x the distance to the 4th neighbour
-OUTLIER_RADIUS_FACTOR = 4.0  # radius <= this x the median radius of the cloud
 VORONOI_NEIGHBOURS = 10  # neighbours that cut a point's Voronoi cell (coverage radius)
 MID_GREY = 0.2140  # linear value of the sRGB mid grey 0.5: the colour of uncoloured points
 VOTE_DIRECTIONS = 32  # views that vote for the sign of a component's normals
 VOTE_MAX_POINTS = 1 << 16  # points that take part in the vote (a random sample)
-TIE_FRACTION = 0.05  # a vote under this fraction of its votes' total |n . d| is a tie
 # points (or a point's edges) at a time where a step makes (rows, k+1) or (rows, k+1, 3)
 # temporaries: 10 MB of them at k = 24, where all rows at once peaked at 2.4 kB a point
 # (issue 50). The results do not depend on it: each row is computed alone
@@ -143,8 +142,11 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     if n > chunk_points:  # more than a chunk: in chunks, with bounded memory (issue 50)
         from .chunks import chunked_surfels
 
-        return chunked_surfels(pts, cols, nrm, vp, k=k, smooth=smooth, normalise=normalise,
-                               chunk_points=chunk_points, progress=progress, source=source)
+        if cols is None:
+            cols = np.full((n, 3), MID_GREY, np.float32)
+        return chunked_surfels(surfel_stages, pts, cols, nrm, vp, k=k, smooth=smooth,
+                               normalise=normalise, chunk_points=chunk_points,
+                               progress=progress, source=source)
     stages = 4 if normalise == "none" else 5
     with _stage_bar(stages, f"{source}: points to surfels", progress and n > QUERY_CHUNK) as bar:
         pts, normals_out, radius, area_weight, _ = surfel_stages(pts, nrm, vp, k, smooth, bar)
@@ -562,14 +564,6 @@ def outward_votes(positions: np.ndarray, normals: np.ndarray, label: np.ndarray,
     return votes
 
 
-def sheet_votes(mean: np.ndarray) -> np.ndarray:
-    """The vote of a component whose views tie (``outward_votes``): its mean normal's
-    (n_comp, 3) (y, z, x) first component over 0.1 in size (up, else +z, else +x)."""
-    mean = mean / np.maximum(np.linalg.norm(mean, axis=1), 1e-300)[:, None]
-    first = np.argmax(np.abs(mean) > 0.1, axis=1)
-    return mean[np.arange(len(mean)), first]
-
-
 def area_radii(dist: np.ndarray, outliers: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The radius of the area each surfel stands for, and the cap on its radii, from the
     neighbour distances alone (the first half of :func:`surfel_radii`).
@@ -642,12 +636,6 @@ def _radius_limit(r_area: np.ndarray, spacing: np.ndarray, outliers: bool = True
     if not outliers:
         return CLUSTER_RADIUS_FACTOR * spacing
     return np.minimum(CLUSTER_RADIUS_FACTOR * spacing, outlier_cap(r_area))
-
-
-def outlier_cap(r_area: np.ndarray) -> float:
-    """The radii's cap for lone fliers: ``OUTLIER_RADIUS_FACTOR`` x the median of the
-    cloud's r_area (:func:`area_radii`)."""
-    return OUTLIER_RADIUS_FACTOR * np.median(r_area)
 
 
 def _area_radius(dist: np.ndarray) -> np.ndarray:
