@@ -39,7 +39,8 @@ def add_parser(commands) -> None:
     cluster = prepare.add_argument_group(
         "a cluster", "A point cloud of more than a million points is prepared in chunks "
         "(each with a halo of its neighbours, bounded memory); they can run on Dask workers, "
-        "with the same result.")
+        "with the same result. Each worker holds the whole cloud: on one machine the run "
+        "in this process, which gives each chunk every core, is the leaner.")
     add_cluster_options(cluster, "prepare the chunks")
     prepare.set_defaults(run=run)
 

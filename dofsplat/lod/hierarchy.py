@@ -78,8 +78,10 @@ NORMAL_SPREAD = 1.4
 # from this many surfels on, inner nodes of at most SMALL_NODE surfels are not stored (they
 # are computed when a walk reaches them): the tree's memory falls from 128 bytes per surfel
 # to 45-66 (the share of such nodes depends on N), and a frame's selection takes 1.4-1.9 x
-# as long (bench/RESULTS.md)
-COMPACT_FROM = 1 << 22
+# as long (bench/RESULTS.md). 2^22 until issue 50: at 2^21 a 3.7 M-surfel scan's frame at
+# 1920 x 1080 holds 1.20-1.27 GB where the full tree (with its leaf-order copy) held
+# 1.65-1.72, in 1.16-1.17 x the time (docs/maths.md, "A compact tree for large models")
+COMPACT_FROM = 1 << 21
 SMALL_NODE = 3
 FORMAT_VERSION = 8  # bump when the build or the stored arrays change: old files are rebuilt
 
