@@ -1,36 +1,40 @@
 """Points to surfels in chunks: a cloud of any size in bounded memory (issue 50).
 
-``points_to_surfels`` prepares a cloud of more than ``CHUNK_POINTS`` distinct points here.
-Its steps are local: a point's normal, its move onto its plane, its density, its radius
-and its normalisation weight depend on its neighbours and theirs, a few spacings away. So
-the cloud is cut into chunks of at most that many points (median splits along the longest
-axis, the shape of the LOD tree's top, ``chunk_order``), and each chunk is prepared by the
-in-memory steps (``pointcloud.surfel_stages``) together with a *halo*: the points within
-``HALO_SPACINGS`` x its median distance to the k-th neighbour of its box. The chunk keeps
-its own points' results, computed from neighbourhoods that the halo holds whole; memory is
-one chunk's and its halo's at a time, beside the cloud's own arrays (about 80 bytes a point:
-the positions read, the colours and the surfels written).
+``points_to_surfels`` prepares a cloud of more than ``pointcloud.CHUNK_POINTS`` distinct
+points here. Its steps are local: a point's normal, its move onto its plane, its density,
+its radius and its normalisation weight depend on its neighbours and theirs, a few spacings
+away. So the cloud is cut into chunks of at most that many points (median splits along the
+longest axis, the shape of the LOD tree's top, ``chunk_order``), and each chunk is prepared
+by the in-memory steps (``pointcloud.surfel_stages``) together with a *halo*: the points
+within ``HALO_SPACINGS`` x its median distance to the k-th neighbour of its box. The chunk
+keeps its own points' results, computed from neighbourhoods that the halo holds whole;
+memory is one chunk's and its halo's at a time, beside the cloud's own arrays (about 100
+bytes a point: the positions read, the colours, the surfels written, the radii before the
+cap). Each chunk's steps are a function of the cloud and the chunk alone (``surfel_chunk``,
+``weight_chunk``), so they may run on Dask workers (``on_cluster``) with the same result.
 
-Two steps are not local, and are joined across chunks instead:
+Three steps are not local, and are joined across chunks instead:
 
 * **orientation.** Within a chunk the normals are signed consistently over each component
-  of its neighbour graph and each component gets ``outward_votes``' vote, as in memory. A
+  of its neighbour graph and each component gets ``outward_votes``' tally, as in memory. A
   surface that crosses a chunk's border is then two components; the halo says how they
   agree: a halo point is another chunk's own point, signed by both, so each pair of
   components that share points gets the sum of their signs' agreements there. A maximum
   spanning forest over those sums (``join_orientation``: Kruskal, largest agreement first,
   with the parity of each component against its tree's root) makes each surface one
-  group; the group is turned by the sum of its components' votes (each taken in the
-  root's sign), or kept as a given normal has it, as ``orient_normals`` turns a
-  component.
+  group; the group's views are summed in its root's sign and decided as ``outward_votes``
+  decides a component's (``rules.sheet_votes`` for a tie), or it keeps a given normal's.
+* **the radii's outlier cap** (``rules.outlier_cap``, a multiple of the whole cloud's
+  median): each chunk keeps its radii under the cluster cap alone, and the minimum with the
+  outlier cap is taken after the chunks, which is the in-memory radius (the minima commute).
 * **the normalisation's level** (``normalise.rendered_level``, one factor for the model):
   read on the chunks' own surfels (at most ``LEVEL_CHUNKS`` of them, spread over the
   order), and their levels averaged, weighted by the chunks' points.
 
-The radii's outlier cap (``OUTLIER_RADIUS_FACTOR`` x the median radius) takes each chunk's
-median with its halo. The result is not the in-memory preparation's bit for bit (a halo
-point's neighbourhood at the halo's rim is cut, and the object-space weights' ten
-iterations reach further than the halo); ``tests/test_chunks.py`` bounds the difference.
+So the positions, normals, radii and uncalibrated weights are the in-memory preparation's
+bit for bit wherever the neighbourhoods a point reads fit in its chunk's halo (all but a
+handful of lone points on the 3.7 M-point synthetic scan), and the level is read on the
+chunks (0.57 % lower there; docs/outofcore.md). ``tests/test_chunks.py`` checks both.
 """
 
 from __future__ import annotations
