@@ -1,6 +1,8 @@
 """Data to surfels: everything between a file's points or triangles and a ``Surfels`` model.
 
 * ``pointcloud``: bare points to surfels (normals, their orientation, radii);
+* ``chunks``: the same for a cloud larger than a chunk, chunk by chunk with halos (bounded
+  memory; on Dask workers too), and ``rules``, the decisions both take;
 * ``meshes``: triangle meshes sampled into surfels (textures, creases);
 * ``normalise``: per-point weights so that a surface's splats sum to one;
 * ``neighbours``: the k-nearest-neighbour and direction queries they share.
