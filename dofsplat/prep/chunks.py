@@ -107,13 +107,14 @@ def chunked_surfels(stages, pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: b
     r_area = np.empty(n, np.float64)
     r_capped = np.empty(n, np.float64)
     r_radius = np.empty(n, np.float64)
-    tallies, fixed, halos = [], [], []
+    tallies, fixed, halos, boxes = [], [], [], []
     n_comp = 0
     with _chunk_bar(2 * n if normalise != "none" else n, source, progress) as bar:
-        chunk_args = ((np.sort(order[a:b]), k, smooth) for a, b in bounds)
+        chunk_args = ((order[a:b], k, smooth) for a, b in bounds)
         for (a, b), c in zip(bounds, each_chunk(surfel_chunk, (stages, pts, nrm, vp),
                                                 chunk_args)):
-            own = np.sort(order[a:b])
+            own = order[a:b]
+            boxes.append(c["box"])
             out_pos[own], out_nrm[own] = c["positions"], c["normals"]
             r_area[own], r_capped[own], r_radius[own] = c["r_area"], c["r_capped"], c["radius"]
             if c["label"] is not None:
@@ -151,11 +152,11 @@ def chunked_surfels(stages, pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: b
         levels = []
         reads = set(np.linspace(0, len(bounds) - 1, min(LEVEL_CHUNKS, len(bounds)))
                     .round().astype(int).tolist())
-        chunk_args = ((np.sort(order[a:b]), k, normalise, i in reads)
+        chunk_args = ((order[a:b], boxes[i], normalise, i in reads)
                       for i, (a, b) in enumerate(bounds))
         for (a, b), (w, level) in zip(bounds, each_chunk(weight_chunk, (surfels, pts),
                                                          chunk_args)):
-            weight[np.sort(order[a:b])] = w
+            weight[order[a:b]] = w
             if level is not None:
                 levels.append((level, b - a))
             bar.update(b - a)
@@ -165,18 +166,19 @@ def chunked_surfels(stages, pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: b
 
 def surfel_chunk(stages, pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) -> dict:
     """One chunk's steps 1-4 (stages: ``pointcloud.surfel_stages``) on its points (own:
-    their rows, sorted) and its halo: a dict of its points' positions, normals (as propagated, before
-    the votes), radius, r_area and r_capped (before the outlier cap), label (their
-    components, or None where the normals were all given or turned towards vp), and the
-    components' tally and fixed, and the halo's rows, components and normals (for
-    ``agreements``)."""
-    ids = halo_ids(pts, own, k)
+    their rows, sorted) and its halo: a dict of its box widened by the halo (``halo_box``),
+    its points' positions, normals (as propagated, before the votes), radius, r_area and
+    r_capped (before the outlier cap), label (their components, or None where the normals
+    were all given or turned towards vp), and the components' tally and fixed, and the
+    halo's rows, components and normals (for ``agreements``)."""
+    box = halo_box(pts, own, k)
+    ids = rows_in_box(pts, *box)
     mine = np.searchsorted(ids, own)
     sub_vp = vp if vp is None or vp.ndim == 1 else vp[ids]
     p, nm, rad, _, orientation, (area, limit) = stages(
         pts[ids], None if nrm is None else nrm[ids], sub_vp, k, smooth, vote=False,
         outliers=False)
-    out = {"positions": p[mine], "normals": nm[mine], "radius": rad[mine],
+    out = {"box": box, "positions": p[mine], "normals": nm[mine], "radius": rad[mine],
            "r_area": area[mine], "r_capped": np.minimum(area[mine], limit[mine]),
            "label": None}
     if orientation is not None:
@@ -188,13 +190,13 @@ def surfel_chunk(stages, pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) ->
     return out
 
 
-def weight_chunk(surfels: Surfels, pts, own: np.ndarray, k: int, method: str, level: bool):
+def weight_chunk(surfels: Surfels, pts, own: np.ndarray, box, method: str, level: bool):
     """One chunk's normalisation weights (``normalise.normalise`` by method, uncalibrated)
-    with its halo: (its points' weights, and ``rendered_level`` of them where level, else
-    None)."""
+    with its halo (box: ``surfel_chunk``'s, the same rows): (its points' weights, and
+    ``rendered_level`` of them where level, else None)."""
     from .normalise import normalise as normalise_surfels, rendered_level
 
-    ids = halo_ids(pts, own, k)
+    ids = rows_in_box(pts, *box)
     mine = np.searchsorted(ids, own)
     sub = normalise_surfels(surfels.subset(ids), method, calibrate=False, progress=False)
     return sub.weight[mine], (rendered_level(sub.subset(mine), progress=False) if level
@@ -204,8 +206,8 @@ def weight_chunk(surfels: Surfels, pts, own: np.ndarray, k: int, method: str, le
 def chunk_order(pts: np.ndarray, chunk_points: int):
     """(order (N,) int64, bounds [(a, b), ...]): the points cut into chunks of at most
     chunk_points by median splits along the longest axis of each part's box, as the LOD
-    tree splits (m into m // 2 and m - m // 2); chunk c is order[a:b]. The same points give
-    the same chunks (``np.argpartition`` on the same values)."""
+    tree splits (m into m // 2 and m - m // 2); chunk c is order[a:b], its rows sorted. The
+    same points give the same chunks (``np.argpartition`` on the same values)."""
     n = len(pts)
     order = np.arange(n, dtype=np.int64)
     bounds = []
@@ -213,6 +215,7 @@ def chunk_order(pts: np.ndarray, chunk_points: int):
     while stack:
         a, b = stack.pop()
         if b - a <= chunk_points:
+            order[a:b].sort()
             bounds.append((a, b))
             continue
         part = order[a:b]
@@ -226,10 +229,10 @@ def chunk_order(pts: np.ndarray, chunk_points: int):
     return order, bounds
 
 
-def halo_ids(pts: np.ndarray, own: np.ndarray, k: int) -> np.ndarray:
-    """The sorted rows of the points within a chunk's box (its points: own, sorted) widened
-    by its halo, ``HALO_SPACINGS`` x the median distance to the k-th neighbour of up to
-    ``HALO_SAMPLE`` of its points: own and its halo."""
+def halo_box(pts: np.ndarray, own: np.ndarray, k: int):
+    """(lo, hi) (3,) each: the box of a chunk's points (own) widened by its halo,
+    ``HALO_SPACINGS`` x the median distance to the k-th neighbour of up to ``HALO_SAMPLE``
+    of its points."""
     from scipy.spatial import cKDTree
 
     p = pts[own]
@@ -239,8 +242,14 @@ def halo_ids(pts: np.ndarray, own: np.ndarray, k: int) -> np.ndarray:
     d = cKDTree(p).query(p[::step], kk + 1, workers=-1)[0][:, kk]
     del p
     margin = HALO_SPACINGS * float(np.median(d))
+    return lo - margin, hi + margin
+
+
+def rows_in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The sorted rows of the points within the box [lo, hi]: a chunk's own and its halo
+    (``halo_box``)."""
     inside = np.empty(len(pts), np.bool_)
-    _in_box(pts, lo - margin, hi + margin, inside)
+    _in_box(pts, lo, hi, inside)
     return np.flatnonzero(inside)
 
 

@@ -167,16 +167,6 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
     return surfels
 
 
-class _NoBar:
-    """A stage bar that shows nothing (``surfel_stages`` without one)."""
-
-    def set_postfix_str(self, text):
-        pass
-
-    def update(self):
-        pass
-
-
 def surfel_stages(pts: np.ndarray, nrm, vp, k: int, smooth: bool, bar=None, *,
                   vote: bool = True, outliers: bool = True):
     """Steps 1-4 of the module docstring on points without duplicates: (positions (N, 3)
@@ -191,7 +181,7 @@ def surfel_stages(pts: np.ndarray, nrm, vp, k: int, smooth: bool, bar=None, *,
     outliers=False the radii without ``outlier_cap`` (what the preparation in chunks joins
     across chunks: ``prep.chunks``); it then returns (r_area, limit) of
     :func:`area_radii` after the orientation, for that cap."""
-    bar = _NoBar() if bar is None else bar
+    bar = _stage_bar(4, "", False) if bar is None else bar
     n = len(pts)
     bar.set_postfix_str("neighbours")
     # smoothing moves the points, and their distances are measured again after it
