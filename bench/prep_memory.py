@@ -3,6 +3,8 @@
     python bench/prep_memory.py /tmp/synth1m.laz --save /tmp/prep_ref.npz   # before a change
     python bench/prep_memory.py /tmp/synth1m.laz --check /tmp/prep_ref.npz  # after it
     python bench/prep_memory.py /tmp/synth1m.laz --stages                   # RSS per stage
+    python bench/prep_memory.py /tmp/synth4m.laz --chunk-points 1e12 --save /tmp/whole.npz
+    python bench/prep_memory.py /tmp/synth4m.laz --check /tmp/whole.npz     # chunks vs whole
     python bench/prep_memory.py /tmp/synth20m.laz --render "--size 1920x1080 --aperture 5"
 
 The file is loaded with ``dofsplat.io.load(path, cache="off")`` (the preparation of
@@ -15,7 +17,9 @@ whole run use ``/usr/bin/time -v`` (Maximum resident set size). ``--render ARGS`
 first render instead, ``dofsplat render PATH ARGS --no-cache --lod-cache off`` in this
 process (the model prepared and its tree built afresh; the kernels from their cache), and
 prints the peak of its stages: reading the file, merging duplicates, the surfels (in chunks
-past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame.
+past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame. ``--chunk-points
+N`` sets that threshold (1e12: the whole cloud at once), so that ``--save`` of one and
+``--check`` of the other count the rows in which chunks and the whole cloud differ.
 """
 
 from __future__ import annotations
@@ -77,54 +81,45 @@ class StageSampler:
         self._thread.join()
 
 
+def wrap(sampler: StageSampler, module: str, name: str, label: str | None = None) -> None:
+    """module.name wrapped so that the sampler knows when it runs (under label, or its
+    name); left as it is where the module lacks it (an older checkout on PYTHONPATH)."""
+    import importlib
+
+    try:
+        mod = importlib.import_module(module)
+        fn = getattr(mod, name)
+    except (ImportError, AttributeError):
+        return
+
+    @functools.wraps(fn)
+    def staged(*args, **kwargs):
+        with sampler.under(label or name):
+            return fn(*args, **kwargs)
+
+    setattr(mod, name, staged)
+
+
 def wrap_stages(sampler: StageSampler):
     """Wrap the preparation's stage functions so that the sampler knows which one runs."""
-    from dofsplat.prep import normalise, pointcloud
-
-    def wrap(module, name, label=None):
-        fn = getattr(module, name)
-
-        @functools.wraps(fn)
-        def staged(*args, **kwargs):
-            with sampler.under(label or name):
-                return fn(*args, **kwargs)
-
-        setattr(module, name, staged)
-
     for name in ("_merge_duplicates", "nearest_neighbours", "pca_planes", "project_to_planes",
                  "neighbour_distances", "remeasured_density", "area_radii",
-                 "orient_normals", "surfel_radii"):
-        wrap(pointcloud, name)
-    wrap(normalise, "_object_setup", "normalise: neighbours")
-    wrap(normalise, "object_weights", "normalise: object_weights")
-    wrap(normalise, "rendered_level", "normalise: rendered_level")
+                 "orient_normals", "propagate_orientation", "outward_votes", "surfel_radii"):
+        wrap(sampler, "dofsplat.prep.pointcloud", name)
+    wrap(sampler, "dofsplat.prep.normalise", "_object_setup", "normalise: neighbours")
+    wrap(sampler, "dofsplat.prep.normalise", "object_weights", "normalise: object_weights")
+    wrap(sampler, "dofsplat.prep.normalise", "rendered_level", "normalise: rendered_level")
 
 
 def wrap_render_stages(sampler: StageSampler):
     """Wrap a first render's stages (``--render``); those an older checkout lacks are left
     out, so that the script measures it too (PYTHONPATH=that checkout)."""
-    import importlib
-
-    def wrap(module, name, label):
-        try:
-            module = importlib.import_module(module)
-            fn = getattr(module, name)
-        except (ImportError, AttributeError):
-            return
-
-        @functools.wraps(fn)
-        def staged(*args, **kwargs):
-            with sampler.under(label):
-                return fn(*args, **kwargs)
-
-        setattr(module, name, staged)
-
-    wrap("dofsplat.io.las", "read_las_points", "read the file (LAS/LAZ)")
-    wrap("dofsplat.prep.pointcloud", "_merge_duplicates", "merge duplicates")
-    wrap("dofsplat.prep.pointcloud", "points_to_surfels", "surfels")
+    wrap(sampler, "dofsplat.io.las", "read_las_points", "read the file (LAS/LAZ)")
+    wrap(sampler, "dofsplat.prep.pointcloud", "_merge_duplicates", "merge duplicates")
+    wrap(sampler, "dofsplat.prep.pointcloud", "points_to_surfels", "surfels")
     # (the normalisation's level renders the model: a tree built within "surfels" is its)
-    wrap("dofsplat.lod", "build_hierarchy", "LOD tree")
-    wrap("dofsplat.lod.cache", "build_hierarchy", "LOD tree")
+    wrap(sampler, "dofsplat.lod", "build_hierarchy", "LOD tree")
+    wrap(sampler, "dofsplat.lod.cache", "build_hierarchy", "LOD tree")
 
 
 def render_stages(path: str, args: str) -> None:
@@ -154,6 +149,9 @@ def main():
     parser.add_argument("--save", help="write the surfel arrays to this .npz")
     parser.add_argument("--check", help="compare the surfel arrays with this .npz")
     parser.add_argument("--stages", action="store_true", help="peak RSS per stage")
+    parser.add_argument("--chunk-points", type=float, metavar="N",
+                        help="prepare in chunks past N points (prep.pointcloud.CHUNK_POINTS; "
+                             "1e12: the whole cloud at once)")
     parser.add_argument("--render", metavar="ARGS",
                         help="a first render with these dofsplat render options: its stages")
     args = parser.parse_args()
@@ -161,7 +159,10 @@ def main():
         return render_stages(args.path, args.render)
 
     from dofsplat.io import load
+    from dofsplat.prep import pointcloud
 
+    if args.chunk_points is not None:
+        pointcloud.CHUNK_POINTS = int(args.chunk_points)
     t0 = time.perf_counter()
     if args.stages:
         sampler = StageSampler()
@@ -183,8 +184,16 @@ def main():
     if args.check:
         ref = np.load(args.check)
         bad = [name for name in FIELDS if not np.array_equal(ref[name], arrays[name])]
-        print("identical" if not bad else f"DIFFERENT: {', '.join(bad)}")
+        print("identical" if not bad else "DIFFERENT: " + ", ".join(
+            f"{name} in {_rows_differing(ref[name], arrays[name]):,} rows" for name in bad))
         raise SystemExit(1 if bad else 0)
+
+
+def _rows_differing(a: np.ndarray, b: np.ndarray) -> int:
+    """How many rows of a and b differ (all of them where their shapes do)."""
+    if a.shape != b.shape:
+        return max(len(a), len(b))
+    return int(np.count_nonzero(np.any((a != b).reshape(len(a), -1), axis=1)))
 
 
 if __name__ == "__main__":
