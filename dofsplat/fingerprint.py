@@ -41,18 +41,40 @@ def content_hash(model, fields: tuple[str, ...] | None = None, salt: str = "", *
     hit = kept.get((names, salt))
     if cached and hit is not None and all(a is b for a, b in zip(hit[0], values)):
         return hit[1]
-    h = hashlib.blake2b(digest_size=16)
-    h.update(f"{type(model).__qualname__}\0{salt}\0".encode())
+    h = HashStream(type(model).__qualname__, salt)
     for name, value in zip(names, values):
         if isinstance(value, np.ndarray):
-            h.update(f"{name}:{value.dtype.str}{value.shape}\0".encode())
-            h.update(np.ascontiguousarray(value).reshape(-1).view(np.uint8))
+            h.array(name, value.dtype, value.shape)
+            h.update(value)
         else:  # None, or a small value object: its repr
-            h.update(f"{name}={value!r}\0".encode())
+            h.value(name, value)
     digest = h.hexdigest()
     if state is not None:  # (through __dict__: a frozen dataclass keeps it too)
         state[_KEPT] = {**kept, (names, salt): (values, digest)}
     return digest
+
+
+class HashStream:
+    """``content_hash`` fed field by field, an array's bytes in pieces: the hash of a model
+    whose arrays are written a piece at a time and never whole in memory (``io.model_file``).
+    The fields in the model's order: ``array(name, dtype, shape)`` then ``update`` with the
+    array's rows in order, or ``value(name, value)``; then ``hexdigest()``."""
+
+    def __init__(self, class_name: str, salt: str = ""):
+        self._h = hashlib.blake2b(digest_size=16)
+        self._h.update(f"{class_name}\0{salt}\0".encode())
+
+    def array(self, name: str, dtype, shape) -> None:
+        self._h.update(f"{name}:{np.dtype(dtype).str}{tuple(int(n) for n in shape)}\0".encode())
+
+    def update(self, rows: np.ndarray) -> None:
+        self._h.update(np.ascontiguousarray(rows).reshape(-1).view(np.uint8))
+
+    def value(self, name: str, value) -> None:
+        self._h.update(f"{name}={value!r}\0".encode())
+
+    def hexdigest(self) -> str:
+        return self._h.hexdigest()
 
 
 def remember_hash(model, fields: tuple[str, ...] | None, salt: str, digest: str) -> None:

@@ -176,14 +176,19 @@ def test_an_interrupted_write_leaves_nothing(stored, tmp_path, monkeypatch):
     target = tmp_path / "m.dofsplat"
     calls = []
 
-    def failing(a, size=64 << 20):
-        calls.append(1)
-        if len(calls) > 1:
-            raise OSError(28, "No space left on device")
-        yield from original(a, size)
+    def failing(a, index=None):
+        dtype, shape, pieces = original(a, index)
 
-    original = model_file._chunks
-    monkeypatch.setattr(model_file, "_chunks", failing)
+        def some():
+            calls.append(1)
+            if len(calls) > 1:
+                raise OSError(28, "No space left on device")
+            yield from pieces()
+
+        return dtype, shape, some
+
+    original = model_file._gathered
+    monkeypatch.setattr(model_file, "_gathered", failing)
     with pytest.raises(DofsplatError, match="No space left"):
         model_file.write_model_file(target, model, tree)
     assert list(tmp_path.iterdir()) == []
@@ -193,6 +198,34 @@ def test_an_interrupted_write_leaves_nothing(stored, tmp_path, monkeypatch):
         model_file.write_model_file(target, model, tree)
     assert target.read_bytes() == path.read_bytes()
     assert len(load(target)) == len(model)
+
+
+def test_the_arrays_are_written_a_piece_at_a_time(stored, tmp_path, monkeypatch):
+    """The writer moves each array into the file's order a piece of ROWS rows at a time and
+    hashes the pieces (``fingerprint.HashStream``): in pieces of 100 rows the file is the
+    same byte for byte, its header's hashes are those of its own arrays read back (the
+    content hash over every field, None ones between them, and the tree's fingerprint), and
+    the tree's rows are the blocked layout's (``Hierarchy.blocked``)."""
+    from dofsplat.fingerprint import content_hash
+    from dofsplat.lod.hierarchy import ATTRIBUTES, fingerprint
+
+    model, tree, path = stored
+    monkeypatch.setattr(model_file, "ROWS", 100)
+    again = tmp_path / "pieces.dofsplat"
+    model_file.write_model_file(again, model, tree, source={"path": "bumpy"})
+    assert again.read_bytes() == path.read_bytes()
+    header = model_file.read_header(again)
+    opened = load(again)
+    fresh = ds.Surfels.stored(material=opened.material, **{
+        name: None if getattr(opened, name) is None else np.array(getattr(opened, name))
+        for name in model_file.SURFEL_ARRAYS})
+    assert fresh.tangent is None and fresh.weight is not None
+    assert header["content_hash"] == content_hash(fresh)
+    assert header["tree"]["fingerprint"] == fingerprint(fresh)
+    blocked, _ = tree.blocked(model_file.BLOCK_LEVELS)
+    mine = hierarchy_for(opened)
+    for name in ATTRIBUTES + ("child",):
+        np.testing.assert_array_equal(np.asarray(getattr(mine, name)), getattr(blocked, name))
 
 
 def test_a_tree_of_another_model_is_refused(stored, tmp_path):

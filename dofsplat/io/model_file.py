@@ -37,7 +37,7 @@ from __future__ import annotations
 import hashlib
 import json
 import struct
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +53,7 @@ PAGE = 4096
 TRAILER_MARK = b"DOFSPLAT-COMPLETE".ljust(24, b"\0")
 TRAILER = len(TRAILER_MARK) + 8  # the mark, then the header's digest
 HINTS = ("up_hint", "shading_hint", "capture")  # what loaders tell render about a model (kept)
+ROWS = 1 << 20  # an array is moved into the file's order and written this many rows at a time
 SURFEL_ARRAYS = ("positions", "normals", "radius", "colors", "opacity", "tangent", "radius_v",
                  "weight")
 
@@ -62,53 +63,59 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
     """Write ``surfels`` and their LOD ``tree`` (``lod.Hierarchy``, built for them) as a
     ``.dofsplat`` file, atomically; returns the path. source: what the model was prepared
     from (kept in the header). block_levels: the tree's blocks (0: its rows in preorder, for
-    ``bench/model_file.py``'s comparison)."""
-    from ..fingerprint import content_hash
+    ``bench/model_file.py``'s comparison).
+
+    Each array is moved into the file's order ROWS rows at a time as it is written, and the
+    fingerprints are hashed from those pieces (``fingerprint.HashStream``): beside the model
+    and its tree, the write holds the tree's row maps (16 bytes a stored row) and a piece."""
+    from ..fingerprint import HashStream
     from ..io.images import atomic_write
     from ..lod import FORMAT_VERSION, min_leaf_geo
-    from ..lod.hierarchy import ATTRIBUTES, TREE_FIELDS, fingerprint
+    from ..lod.hierarchy import ATTRIBUTES, TREE_FIELDS, fingerprint, fingerprint_salt
 
     if tree.n_surfels != len(surfels) or tree.fingerprint != fingerprint(surfels, cached=True):
         raise DofsplatError("write_model_file: the LOD tree was not built for these surfels")
     order = np.asarray(tree.order)
+    # each array of the file: (dtype, shape, its rows in the file's order, a piece at a time)
     arrays = {}
     for name in SURFEL_ARRAYS:
         a = getattr(surfels, name)
         if a is not None:
-            arrays[f"surfels.{name}"] = np.ascontiguousarray(a[order])
+            arrays[f"surfels.{name}"] = _gathered(a, order)
     # the default camera's sample (Surfels.sample), the source's own
     sample = surfels.sample(VIEW_SAMPLE)
     for name in SURFEL_ARRAYS:
         a = getattr(sample, name)
         if a is not None:
-            arrays[f"sample.{name}"] = np.ascontiguousarray(a)
-    arrays["tree.order"] = np.arange(len(order), dtype=order.dtype)
+            arrays[f"sample.{name}"] = _gathered(a)
+    arrays["tree.order"] = (order.dtype, order.shape, lambda: (  # the identity
+        np.arange(i, min(i + ROWS, len(order)), dtype=order.dtype)
+        for i in range(0, len(order), ROWS)))
     geo = min_leaf_geo(tree, surfels, tree.small)
     if block_levels:
-        blocked, file_row = tree.blocked(block_levels)
-        arrays.update({f"tree.{name}": getattr(blocked, name) for name in ATTRIBUTES})
-        arrays["tree.child"] = blocked.child
-        min_geo = np.empty_like(geo)
-        min_geo[file_row] = geo[:len(file_row)]
-        arrays["tree.min_geo"] = min_geo
-    else:
-        arrays.update({f"tree.{name}": np.ascontiguousarray(getattr(tree, name))
+        file_row, child = tree.block_rows(block_levels)
+        rows = np.empty_like(file_row)  # the preorder row at each row of the file
+        rows[file_row] = np.arange(len(file_row))
+        del file_row
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name), rows)
                        for name in ATTRIBUTES})
-        arrays["tree.min_geo"] = geo
-    # the leaf-ordered model's own fingerprints: what a render checks the tree against
-    stored = Surfels.stored(material=surfels.material, **{
-        name: arrays.get(f"surfels.{name}") for name in SURFEL_ARRAYS})
-    surfel_hash = fingerprint(stored)
-    lo, hi = stored.bounds()
-    view_lo, view_hi = stored.view_bounds()
+        arrays["tree.child"] = _gathered(child)
+        arrays["tree.min_geo"] = _gathered(geo[:len(rows)], rows)
+    else:
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
+        arrays["tree.min_geo"] = _gathered(geo)
+    # the bounds are the leaf-ordered model's (a box and a largest radius: any order's)
+    lo, hi = surfels.bounds()
+    view_lo, view_hi = surfels.view_bounds()
+    unknown = "0" * 32  # the two hashes' length, until the arrays are written and hashed
     header = {
         "kind": "surfels",
         "count": len(surfels),
         "material": asdict(surfels.material),
         "tree": {"small": int(tree.small), "format": FORMAT_VERSION,
                  "block_levels": int(block_levels),
-                 "fingerprint": surfel_hash, "fields": list(TREE_FIELDS)},
-        "content_hash": content_hash(stored),
+                 "fingerprint": unknown, "fields": list(TREE_FIELDS)},
+        "content_hash": unknown,
         "bounds": [lo.tolist(), hi.tolist()],
         "view_bounds": [view_lo.tolist(), view_hi.tolist()],
         "source": source or {},
@@ -121,29 +128,58 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
     first = PAGE
     while True:
         offset, listing = first, []
-        for name, a in arrays.items():
-            listing.append({"name": name, "dtype": a.dtype.str, "shape": list(a.shape),
+        for name, (dtype, shape, _) in arrays.items():
+            listing.append({"name": name, "dtype": dtype.str, "shape": list(shape),
                             "offset": offset})
-            offset = _page(offset + a.nbytes)
+            offset = _page(offset + dtype.itemsize * int(np.prod(shape)))
         header["arrays"] = listing
         text = json.dumps(header, separators=(",", ":")).encode()
         if 16 + len(text) <= first:
             break
         first = _page(16 + len(text))
     end = offset
-    digest = hashlib.blake2b(text, digest_size=8).digest()
 
     def write(tmp):
+        # the leaf-ordered model's own fingerprints (what a render checks the tree against:
+        # those of the Surfels.stored that read_model_file makes), hashed field by field
+        # from the pieces written, then the header that holds them, then the trailer
+        tree_hash = HashStream(Surfels.__qualname__, fingerprint_salt())
+        model_hash = HashStream(Surfels.__qualname__)
+        offsets = {entry["name"]: entry["offset"] for entry in listing}
+        bar = _bar(sum(dtype.itemsize * int(np.prod(shape))
+                       for dtype, shape, _ in arrays.values()), progress)
         with open(tmp, "wb") as fh:
-            fh.write(MAGIC + struct.pack("<II", VERSION, len(text)) + text)
-            bar = _bar(sum(a.nbytes for a in arrays.values()), progress)
-            for entry, a in zip(listing, arrays.values()):
-                fh.seek(entry["offset"])
-                for chunk in _chunks(a):
-                    fh.write(chunk)
-                    bar.update(len(chunk))
+
+            def put(name, hashes=()):
+                fh.seek(offsets[name])
+                for piece in arrays[name][2]():
+                    fh.write(np.ascontiguousarray(piece).reshape(-1).view(np.uint8))
+                    for h in hashes:
+                        h.update(piece)
+                    bar.update(piece.nbytes)
+
+            for field in (f.name for f in fields(Surfels)):  # content_hash's order
+                name = f"surfels.{field}"
+                hashes = (tree_hash, model_hash) if field in TREE_FIELDS else (model_hash,)
+                if name in arrays:
+                    for h in hashes:
+                        h.array(field, *arrays[name][:2])
+                    put(name, hashes)
+                else:  # None, or the material
+                    for h in hashes:
+                        h.value(field, getattr(surfels, field))
+            for name in arrays:
+                if not name.startswith("surfels."):
+                    put(name)
             bar.close()
+            header["tree"]["fingerprint"] = tree_hash.hexdigest()
+            header["content_hash"] = model_hash.hexdigest()
+            final = json.dumps(header, separators=(",", ":")).encode()
+            assert len(final) == len(text)  # (the placeholders had the hashes' length)
+            fh.seek(0)
+            fh.write(MAGIC + struct.pack("<II", VERSION, len(final)) + final)
             fh.seek(end)
+            digest = hashlib.blake2b(final, digest_size=8).digest()
             fh.write(TRAILER_MARK + digest)  # last: the file is complete
 
     return atomic_write(path, write)
@@ -269,11 +305,16 @@ def _page(offset: int) -> int:
     return -(-offset // PAGE) * PAGE
 
 
-def _chunks(a: np.ndarray, size: int = 64 << 20):
-    """a's bytes in pieces of at most ``size`` (a progress bar's steps; no copy)."""
-    flat = a.reshape(-1).view(np.uint8)
-    for i in range(0, flat.size, size):
-        yield flat[i:i + size]
+def _gathered(a: np.ndarray, index: np.ndarray | None = None):
+    """(dtype, shape, pieces) of ``a[index]`` (``a`` where index is None): pieces() yields
+    its rows in order, ROWS at a time, so that the whole is never in memory."""
+    n = len(a) if index is None else len(index)
+
+    def pieces():
+        for i in range(0, n, ROWS):
+            yield a[i:i + ROWS] if index is None else a[index[i:i + ROWS]]
+
+    return a.dtype, (n,) + a.shape[1:], pieces
 
 
 def _bar(total: int, progress: bool):

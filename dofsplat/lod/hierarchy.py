@@ -188,18 +188,24 @@ class Hierarchy:
         ``levels`` levels, breadth first within a block, the blocks in preorder), and
         ``child`` set, so that a cut that stops in a block reads the block's first rows,
         not rows spread over the whole tree (docs/outofcore.md)."""
-        if self.block_levels:
-            raise ValueError("the tree is in the blocked layout already")
-        k = len(self.center)
-        file_row = np.empty(k, np.int64)
-        child = np.empty(k, np.int32)
-        blocked_layout(self.n_surfels, self.small, levels, file_row, child)
+        file_row, child = self.block_rows(levels)
         moved = {name: np.empty_like(getattr(self, name)) for name in ATTRIBUTES}
         for name in ATTRIBUTES:
             moved[name][file_row] = getattr(self, name)
         tree = Hierarchy(order=self.order, fingerprint=self.fingerprint, small=self.small,
                          child=child, block_levels=levels, **moved)
         return tree, file_row
+
+    def block_rows(self, levels: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """(file_row, child) of ``blocked``'s layout (``blocked_layout``), without moving the
+        attributes: for a writer that moves them an array at a time (``io.model_file``)."""
+        if self.block_levels:
+            raise ValueError("the tree is in the blocked layout already")
+        k = len(self.center)
+        file_row = np.empty(k, np.int64)
+        child = np.empty(k, np.int32)
+        blocked_layout(self.n_surfels, self.small, levels, file_row, child)
+        return file_row, child
 
     def row(self, node):
         """The row of node(s) ``node`` in the attribute arrays (-1: not stored)."""
