@@ -241,6 +241,23 @@ def test_a_damaged_lod_cache_entry_is_rebuilt(cache_dir, damage):
     assert len(tree) == 2 * len(s) - 1 and path.stat().st_size > 2000
 
 
+def test_a_cached_tree_of_another_layout_is_rebuilt(cache_dir, monkeypatch):
+    """A tree kept before ``COMPACT_FROM`` moved (its ``small`` not today's for the model's
+    size) draws the same frames at another memory: the cache builds today's instead."""
+    from dofsplat.lod import hierarchy
+    from dofsplat.lod.cache import cached_hierarchy
+
+    from conftest import grid_surfels
+
+    s = grid_surfels(8)
+    assert cached_hierarchy(s, "auto").small == 1
+    monkeypatch.setattr(hierarchy, "COMPACT_FROM", 16)  # today's default: compact
+    logged = []
+    tree = cached_hierarchy(grid_surfels(8), "auto", log=logged.append)
+    assert tree.small == hierarchy.SMALL_NODE and len(logged) == 1
+    assert cached_hierarchy(grid_surfels(8), "auto").small == hierarchy.SMALL_NODE
+
+
 def lod_models(n_models):
     """Models of as many surfels, each its own fingerprint (their trees are the same size)."""
     from conftest import grid_surfels

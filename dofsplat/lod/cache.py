@@ -17,7 +17,7 @@ from typing import Callable
 
 from .. import cache
 from ..errors import DofsplatError
-from .hierarchy import Hierarchy, build_hierarchy, fingerprint
+from .hierarchy import Hierarchy, build_hierarchy, default_small, fingerprint
 
 
 def cache_folder() -> Path:
@@ -54,6 +54,9 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
                 path.unlink(missing_ok=True)  # a damaged cache entry: rebuilt below
             except OSError:
                 pass  # an unreadable cache folder (a file where it should be): rebuilt, not kept
+    if (tree is not None and str(cache_arg) == "auto"
+            and tree.small != default_small(tree.n_surfels)):
+        tree = None  # kept before COMPACT_FROM moved: the same frames, not today's memory
     if tree is not None and str(cache_arg) == "auto":
         cache.touch(path)  # just used: evicted last
     if tree is None:

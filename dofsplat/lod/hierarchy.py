@@ -315,6 +315,11 @@ def fingerprint_salt() -> str:
     return f"lod v{FORMAT_VERSION}"
 
 
+def default_small(n_surfels: int) -> int:
+    """The ``small`` a tree over n surfels is built with: SMALL_NODE from COMPACT_FROM on."""
+    return SMALL_NODE if n_surfels >= COMPACT_FROM else 1
+
+
 def build_hierarchy(surfels: Surfels, progress: bool = False,
                     small: int | None = None) -> Hierarchy:
     """Build the LOD tree over ``surfels`` (O(N log N); a few seconds for a million surfels).
@@ -326,7 +331,7 @@ def build_hierarchy(surfels: Surfels, progress: bool = False,
     if n >= 1 << 30:
         raise DofsplatError(f"{n} surfels is more than the LOD tree's int32 indices allow")
     if small is None:
-        small = SMALL_NODE if n >= COMPACT_FROM else 1
+        small = default_small(n)
     if small not in (1, SMALL_NODE):
         raise ValueError(f"small must be 1 or {SMALL_NODE}, got {small!r}")
     t0 = time.perf_counter()
