@@ -868,20 +868,52 @@ def test_a_full_abuffer_never_writes_past_its_last_slot():
 
 @pytest.mark.parametrize("show_lod", [False, True])
 def test_a_cut_drawn_in_chunks_is_the_cut_drawn_whole(plane_view, monkeypatch, show_lod):
-    """backends.cpu.draw_cut gathers, shades and projects the cut CUT_CHUNK nodes at a time
-    (the memory of a big frame): the frame is the same, bit for bit, in chunks of 1000."""
+    """backends.cpu.draw_cut gathers, shades and projects the cut VISIBLE_CHUNK nodes at a
+    time (the memory of a big frame): the frame is the same, bit for bit, in chunks of 1000."""
     from dofsplat.backends import cpu
 
     s, cam = plane_view
     lens = ds.ThinLens(focus_distance=3.0, aperture=0.1)
     st = ds.RenderSettings(show_lod=show_lod)
     whole = ds.render(s, cam, lens, st)
-    monkeypatch.setattr(cpu, "CUT_CHUNK", 1000)
+    monkeypatch.setattr(cpu, "VISIBLE_CHUNK", 1000)
     chunked = ds.render(s, cam, lens, st)
     assert chunked.stats["splats_selected"] > 10 * 1000  # many chunks
     np.testing.assert_array_equal(chunked.image, whole.image)
     np.testing.assert_array_equal(chunked.depth, whole.depth)
     assert chunked.stats["fragments"] == whole.stats["fragments"]
+
+
+def test_a_cut_keeps_the_rows_of_its_visible_splats_only():
+    """draw_cut projects each chunk aside and keeps its visible splats' rows, in cut order
+    (``project_cut``'s scratch): the rows are those of the whole cut projected in place,
+    less the culled ones (here the spheres' and the floor's back faces, an eighth),
+    whose rows are never written. (The frames are the same: the banded frame, which projects
+    the visible ones only, is the one-buffer frame bit for bit, the test below.)"""
+    from dofsplat.backends import cpu
+    from dofsplat.demo import contact_scene
+    from dofsplat.lod import hierarchy_for
+    from dofsplat.splat.project import N_FIELDS
+
+    s, cam, lens = contact_scene(160, 120)
+    st = ds.RenderSettings()
+    tree = hierarchy_for(s)
+    cut = cpu.select_cut(s, cam, lens, st, tree)
+    n = cut[0].size
+
+    def rows():
+        return (np.full((n, N_FIELDS), np.nan, np.float32), np.full((n, 4), -7, np.int32),
+                np.zeros(n, np.bool_))
+
+    whole, packed, clock = rows(), rows(), {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0}
+    assert cpu.project_cut(s, tree, cut, cam, lens, st, whole, clock) == n
+    kept = cpu.project_cut(s, tree, cut, cam, lens, st, packed, clock, chunk=999, scratch={})
+    seen = whole[2]
+    assert kept == np.count_nonzero(seen) and 0.1 * n < n - kept < 0.5 * n
+    np.testing.assert_array_equal(packed[0][:kept], whole[0][seen])
+    np.testing.assert_array_equal(packed[1][:kept], whole[1][seen])
+    assert packed[2][:kept].all() and not packed[2][kept:].any()
+    assert np.isnan(packed[0][kept:]).all()  # never written
 
 
 @pytest.mark.parametrize("aperture, extra", [(0.0, {}), (0.0, {"show_lod": True}),

@@ -98,6 +98,7 @@ def draw(source, rgb, camera: Camera, lens, settings: RenderSettings, gain=None,
 # nodes of an LOD cut gathered, shaded and projected at a time (draw_cut): 2^20 of them
 # hold 125 MB, where a whole pinhole cut of 10 M surfels (5.2 M nodes) held 650 MB
 CUT_CHUNK = 1 << 20
+VISIBLE_CHUNK = 1 << 18  # draw_cut's chunks: a chunk's rows are projected aside (36 MB)
 
 
 def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
@@ -119,22 +120,30 @@ def draw_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: Render
     bbox = _buffer(workspace, "bbox", (n, 4), np.int32)
     visible = _buffer(workspace, "visible", (n,), np.bool_)
     clock = {"select_ms": 0.0, "shade_ms": 0.0, "project_ms": 0.0}
-    project_cut(surfels, tree, cut, camera, lens, settings, (splats, bbox, visible), clock)
+    # the visible splats only, in cut order: the rows of the culled ones (back faces the
+    # walk leaves to the projection, a third of a scan's cut) are never written, so their
+    # pages are never touched
+    kept = project_cut(surfels, tree, cut, camera, lens, settings, (splats, bbox, visible),
+                       clock, chunk=VISIBLE_CHUNK, scratch=workspace)
     times["select_ms"] += clock["select_ms"]
     times["shade_ms"] = clock["shade_ms"]
-    return draw_splats(splats, bbox, visible, camera, lens, settings, clock["project_ms"])
+    return draw_splats(splats[:kept], bbox[:kept], visible[:kept], camera, lens, settings,
+                       clock["project_ms"])
 
 
 def project_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
-                out, clock: dict, chunk: int | None = None):
+                out, clock: dict, chunk: int | None = None, scratch: dict | None = None) -> int:
     """Gather, shade and project the nodes of ``cut`` ``chunk`` (default CUT_CHUNK) at a
     time into ``out`` (splats, bbox, visible: one row per node), adding each stage's
-    milliseconds to clock["select_ms"], ["shade_ms"] and ["project_ms"]."""
+    milliseconds to clock["select_ms"], ["shade_ms"] and ["project_ms"]; returns the rows
+    filled. scratch: a workspace (``_workspace``) for a chunk's rows, which are projected
+    there and only the visible ones copied into ``out``, in cut order (its first rows)."""
     from ..lod import gather_cut
 
     splats, bbox, visible = out
     n = cut[0].size
     chunk = CUT_CHUNK if chunk is None else chunk
+    filled = 0
     for lo in range(0, n, chunk):
         hi = min(lo + chunk, n)
         t = time.perf_counter()
@@ -146,10 +155,25 @@ def project_cut(surfels: Surfels, tree, cut, camera: Camera, lens, settings: Ren
         rgb, gain = shade_splats(source, camera, settings)
         clock["shade_ms"] += _ms(t)
         t = time.perf_counter()
-        project(source, rgb, camera, lens, settings, gain=gain,
-                out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
+        if scratch is None:
+            project(source, rgb, camera, lens, settings, gain=gain,
+                    out=(splats[lo:hi], bbox[lo:hi], visible[lo:hi]))
+            filled = hi
+        else:
+            m = hi - lo
+            rows = (_buffer(scratch, "chunk_splats", (m, splats.shape[1]), np.float32),
+                    _buffer(scratch, "chunk_bbox", (m, 4), np.int32),
+                    _buffer(scratch, "chunk_visible", (m,), np.bool_))
+            project(source, rgb, camera, lens, settings, gain=gain, out=rows)
+            keep = np.flatnonzero(rows[2])
+            k = keep.size
+            np.take(rows[0], keep, axis=0, out=splats[filled:filled + k])
+            np.take(rows[1], keep, axis=0, out=bbox[filled:filled + k])
+            visible[filled:filled + k] = True
+            filled += k
         clock["project_ms"] += _ms(t)
         del source, rgb, gain
+    return filled
 
 
 def project_boxes(surfels: Surfels, tree, cut, camera: Camera, lens, settings: RenderSettings,
