@@ -256,10 +256,19 @@ def test_the_summary_names_the_focus_that_focus_at_found(workdir, capsys):
     assert status == 0, err
     focus = json.load(open("b.json"))["lens"]["focus_distance"]
     assert f" s, focused at {focus:.4g} (--focus-at 48 20); model " in err.splitlines()[-1]
-    # a focus the user gives is not repeated
-    status, _, err = run_main(["render", "ball.ply", "-o", "b.png", "--size", SIZE_ARG,
-                               "--focus", "2", "--lod-cache", "off"], capsys)
-    assert status == 0 and "focused at" not in err
+    # a focus the user gives is not repeated, and no probe frame looks for another
+    from dofsplat.cli import render as render_cli
+
+    def no_probe(*args):
+        raise AssertionError("the centre's focus was probed")
+
+    real, render_cli.centre_focus = render_cli.centre_focus, no_probe
+    try:
+        status, _, err = run_main(["render", "ball.ply", "-o", "b.png", "--size", SIZE_ARG,
+                                   "--focus", "2", "--lod-cache", "off"], capsys)
+    finally:
+        render_cli.centre_focus = real
+    assert status == 0 and "focused at" not in err, err
 
 
 def test_a_hole_at_the_centre_focuses_on_the_median_of_what_is_seen(workdir, capsys):

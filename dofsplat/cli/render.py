@@ -84,8 +84,9 @@ def model_view(args, surfels):
     """(camera, default focus distance, default lens diameter) of a model: a depth capture
     seen from its sensor, anything else from its most visible side, filling the frame
     (``framing.framing_camera``); the user's camera options applied. The default focus is
-    the distance to --target where one is given, else the surface seen at the image centre
-    (``framing.centre_focus``); ``args.default_focus_source`` says which, in words."""
+    --focus where given, else the distance to --target where one is given, else the surface
+    seen at the image centre (``framing.centre_focus``); ``args.default_focus_source`` says
+    which, in words."""
     from ..gaussians import Gaussians
 
     lo, hi = surfels.view_bounds()
@@ -112,6 +113,8 @@ def model_view(args, surfels):
         camera = camera_from_args(args, base)
     if args.target is not None:
         default_focus, source = math.dist(camera.eye, camera.target), "--target"
+    elif getattr(args, "focus", None) is not None:
+        default_focus, source = args.focus, "--focus"  # (no probe render: the user's focus)
     else:
         default_focus, source = centre_focus(surfels, camera, settings_from_args(args))
     args.default_focus_source = source
