@@ -86,6 +86,76 @@ def test_a_damaged_cache_file_is_prepared_again(cache_dir, points_ply, counted_l
     assert load(points_ply).load_info["from_cache"]  # replaced by a good one
 
 
+@pytest.fixture
+def stored_from(monkeypatch):
+    """Models of 100 surfels or more kept as .dofsplat files (io.prepared.STORED_FROM)."""
+    monkeypatch.setattr(prepared, "STORED_FROM", 100)
+
+
+def test_a_large_model_is_kept_as_a_model_file(cache_dir, points_ply, counted_loader,
+                                               stored_from):
+    """From STORED_FROM surfels on, a prepared model is kept as a .dofsplat file with its
+    tree (``io.prepared.keep_stored``) and returned as its memory maps, the first time too:
+    a later load opens it without reading it, and both draw the image of the model
+    prepared in memory, bit for bit, LOD on and off."""
+    import dofsplat as ds
+    from dofsplat.lod import hierarchy_for
+    from conftest import front_camera
+
+    first = load(points_ply)
+    assert isinstance(first.positions, np.memmap) and not first.load_info["from_cache"]
+    assert first.load_info["cache_file"].endswith(".dofsplat")
+    assert [p.suffix for p in cache.cached_files()] == [".dofsplat"]
+    again = load(points_ply)
+    assert again.load_info["from_cache"] and len(counted_loader) == 1
+    assert isinstance(again.positions, np.memmap)
+    whole = load(points_ply, cache="off")
+    camera = front_camera(64, 48, distance=3.0)
+    lens = ds.ThinLens(focus_distance=2.5, aperture=0.3)
+    for settings in (ds.RenderSettings(), ds.RenderSettings(lod=False)):
+        a = ds.render(whole, camera, lens, settings, hierarchy=hierarchy_for(whole))
+        b = ds.render(again, camera, lens, settings)
+        assert a.stats["splats_rendered"] > 100
+        if settings.lod:
+            np.testing.assert_array_equal(a.image, b.image)
+        else:  # (the surfels in another order: the A-buffer's merges to float rounding)
+            assert np.abs(a.image - b.image).max() < 1e-6
+
+
+def test_a_damaged_model_file_is_prepared_again(cache_dir, points_ply, counted_loader,
+                                                stored_from):
+    load(points_ply)
+    (entry,) = cache.cached_files("surfels")
+    entry.write_bytes(entry.read_bytes()[:5000])  # cut short
+    assert not load(points_ply).load_info["from_cache"] and len(counted_loader) == 2
+    assert load(points_ply).load_info["from_cache"]  # replaced by a good one
+
+
+def test_a_model_larger_than_the_cap_keeps_its_tree(cache_dir, points_ply, monkeypatch,
+                                                    stored_from):
+    """A model too large for the cache is returned in memory, with the tree built for the
+    file attached: the render does not build it again (``lod.cache.cached_hierarchy``)."""
+    from dofsplat.lod import cache as lod_cache
+
+    monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "1000")
+    model = load(points_ply)
+    assert not isinstance(model.positions, np.memmap) and cache.cached_files() == []
+    built = []
+    monkeypatch.setattr(lod_cache, "build_hierarchy", lambda *a, **k: built.append(1))
+    assert lod_cache.cached_hierarchy(model) is model._lod_hierarchy and built == []
+
+
+def test_prepare_from_a_model_file_in_the_cache(cache_dir, points_ply, stored_from, tmp_path,
+                                                capsys):
+    """``dofsplat prepare`` of a model the cache holds as a .dofsplat file writes the file
+    that it writes from the model prepared afresh (``--no-cache``), byte for byte."""
+    load(points_ply)
+    assert cli.main(["prepare", str(points_ply), "-o", str(tmp_path / "a.dofsplat"), "-q"]) == 0
+    assert cli.main(["prepare", str(points_ply), "-o", str(tmp_path / "b.dofsplat"), "-q",
+                     "--no-cache"]) == 0
+    assert (tmp_path / "a.dofsplat").read_bytes() == (tmp_path / "b.dofsplat").read_bytes()
+
+
 def test_the_cap_evicts_the_least_recently_used_first(cache_dir):
     files = []
     for i, kind in enumerate(["surfels", "lod", "surfels", "lod"]):

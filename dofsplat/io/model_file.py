@@ -75,6 +75,8 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
 
     if tree.n_surfels != len(surfels) or tree.fingerprint != fingerprint(surfels, cached=True):
         raise DofsplatError("write_model_file: the LOD tree was not built for these surfels")
+    if tree.block_levels and tree.block_levels != block_levels:
+        raise ValueError(f"the tree is in blocks of {tree.block_levels} levels already")
     order = np.asarray(tree.order)
     # each array of the file: (dtype, shape, its rows in the file's order, a piece at a time)
     arrays = {}
@@ -92,7 +94,11 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
         np.arange(i, min(i + ROWS, len(order)), dtype=order.dtype)
         for i in range(0, len(order), ROWS)))
     geo = min_leaf_geo(tree, surfels, tree.small)
-    if block_levels:
+    if block_levels and tree.block_levels == block_levels:  # a stored model's: as it is
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
+        arrays["tree.child"] = _gathered(tree.child)
+        arrays["tree.min_geo"] = _gathered(geo)
+    elif block_levels:
         file_row, child = tree.block_rows(block_levels)
         rows = np.empty_like(file_row)  # the preorder row at each row of the file
         rows[file_row] = np.arange(len(file_row))

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
 import time
 from dataclasses import asdict
@@ -39,6 +40,7 @@ from ..errors import DofsplatError
 from ..surfels import Material, Surfels
 
 MIN_SECONDS = 0.5  # a model that loads faster is not worth a copy on disk
+STORED_FROM = 1 << 21  # surfels from which a model is kept as a .dofsplat file with its tree
 OPTIONAL = ("opacity", "tangent", "radius_v", "weight")
 _CODE_HASH: list[str] = []
 
@@ -49,6 +51,14 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
     key = cache_key(path, loader, options) if use_cache and cache.enabled() else None
     file = cache.cache_folder("surfels") / f"{key}.npz" if key else None
     t0 = time.perf_counter()
+    stored = file.with_suffix(".dofsplat") if file is not None else None
+    if stored is not None and _exists(stored):
+        surfels = read_stored(stored)
+        if surfels is not None:
+            cache.touch(stored)
+            surfels.load_info = {"seconds": time.perf_counter() - t0, "from_cache": True,
+                                 "cache_file": str(stored)}
+            return surfels
     if file is not None and _exists(file):
         surfels = read_surfels(file)
         if surfels is not None:
@@ -60,6 +70,8 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
     seconds = time.perf_counter() - t0
     surfels.load_info = {"seconds": seconds, "from_cache": False, "cache_file": None}
     if file is not None and seconds >= MIN_SECONDS and isinstance(surfels, Surfels):
+        if len(surfels) >= STORED_FROM:
+            return keep_stored(stored, surfels, path)
         try:
             write_surfels(file, surfels)
             cache.enforce_cap(keep=file)  # (a model larger than the cap goes at once)
@@ -68,6 +80,43 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
         except (OSError, DofsplatError):
             pass  # an unwritable cache costs the preparation next time, no more
     return surfels
+
+
+def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
+    """A large model kept as a ``.dofsplat`` file (``io.model_file``: its LOD tree built
+    now, the render's own) and returned as that file's memory maps: the model in memory is
+    dropped, and a later load opens the file in milliseconds instead of reading the model
+    whole. Where the file cannot be kept (an unwritable cache, a model larger than the
+    cap), the model in memory, its tree attached so that the render does not build it
+    again."""
+    from ..lod.hierarchy import build_hierarchy
+    from .model_file import write_model_file
+
+    info = surfels.load_info
+    tree = build_hierarchy(surfels, progress=sys.stderr.isatty())
+    try:
+        stored.parent.mkdir(parents=True, exist_ok=True)
+        write_model_file(stored, surfels, tree, source={"path": str(source)})
+        cache.enforce_cap(keep=stored)  # (a model larger than the cap goes at once)
+    except (OSError, DofsplatError):
+        pass  # an unwritable cache costs the preparation next time, no more
+    kept = read_stored(stored) if _exists(stored) else None
+    if kept is None:
+        surfels._lod_hierarchy = tree  # (lod.cache.cached_hierarchy takes it)
+        return surfels
+    kept.load_info = {**info, "cache_file": str(stored)}
+    return kept
+
+
+def read_stored(file: Path) -> Surfels | None:
+    """A model kept as a ``.dofsplat`` file, or None where it is unreadable (it is then
+    prepared again and replaced)."""
+    from .model_file import read_model_file
+
+    try:
+        return read_model_file(file)
+    except DofsplatError:
+        return None
 
 
 def cache_key(path: Path, loader, options: dict) -> str:

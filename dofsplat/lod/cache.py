@@ -37,6 +37,9 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
     kept = getattr(surfels, "_lod_hierarchy", None)
     if kept is not None and getattr(kept, "leaf_ordered", False):
         return kept  # a stored model's own tree (io.model_file), checked when it was opened
+    if kept is not None and kept.n_surfels == len(surfels) and \
+            kept.fingerprint == fingerprint(surfels, cached=True):
+        return kept  # built with the model (io.prepared.keep_stored, lod.hierarchy_for)
     if cache_arg is None or str(cache_arg) == "off":
         path = None
     elif str(cache_arg) == "auto":
