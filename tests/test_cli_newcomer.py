@@ -248,6 +248,36 @@ def test_the_default_focus_is_the_surface_at_the_centre_and_the_summary_says_so(
     assert f" s, focused at {focus:.4g} (the surface at the image centre); model " in line, line
 
 
+def test_the_focus_probe_draws_the_centres_pixels_alone():
+    """The default focus renders the centre's 3 x 3 pixels through a window of the probe's
+    frustum (``framing.window_camera``), not the whole probe frame: the window's depths are
+    the frame's in those pixels (to float rounding), so the focus is the one the whole frame
+    gave, and a window elsewhere sees what the frame sees there."""
+    import dofsplat as ds
+    from dofsplat.camera import Camera
+    from dofsplat.cli import framing
+
+    model = ball()
+    lo, hi = model.view_bounds()
+    camera = Camera.framing(lo, hi, 640, 360)
+    probe = framing.small_camera(camera, framing.FOCUS_PROBE_SIZE)
+    pinhole = ds.RenderSettings(dof=False)
+    whole = framing.probe_render(model, probe, pinhole).depth
+    h, w = whole.shape
+    for x0, y0, ww, hh in ((w // 2 - 1, h // 2 - 1, 3, 3), (w // 2 - 30, h // 2 - 8, 21, 13),
+                           (0, h // 2 - 3, w, 7)):
+        part = framing.probe_render(model, framing.window_camera(probe, x0, y0, ww, hh),
+                                    pinhole).depth
+        ref = whole[y0:y0 + hh, x0:x0 + ww]
+        assert np.isfinite(ref).any() and (ww == 3 or not np.isfinite(ref).all())
+        np.testing.assert_array_equal(np.isfinite(part), np.isfinite(ref))
+        np.testing.assert_allclose(part[np.isfinite(part)], ref[np.isfinite(ref)], rtol=1e-6)
+    focus, source = framing.centre_focus(model, camera, pinhole)
+    centre = whole[h // 2 - 1:h // 2 + 2, w // 2 - 1:w // 2 + 2]
+    assert focus == pytest.approx(float(np.median(centre[np.isfinite(centre)])), rel=1e-6)
+    assert source == "the surface at the image centre"
+
+
 def test_the_summary_names_the_focus_that_focus_at_found(workdir, capsys):
     save_surfels(workdir / "ball.ply", ball())
     status, _, err = run_main(["render", "ball.ply", "-o", "b.png", "--size", SIZE_ARG,

@@ -356,12 +356,17 @@ def centre_focus(surfels, camera, settings) -> tuple[float, str]:
 
     probe = small_camera(camera, FOCUS_PROBE_SIZE)
     pinhole = dataclass_replace(settings, dof=False, show_lod=False, lens_samples=1)
-    depth = probe_render(surfels, probe, pinhole).depth
-    h, w = depth.shape
-    centre = depth[max(0, h // 2 - 1):h // 2 + 2, max(0, w // 2 - 1):w // 2 + 2]
-    centre = centre[np.isfinite(centre)]
+    # the centre's pixels first, through a window of the probe's frustum (its own pixels,
+    # its LOD cut near the centre's rays: a large scan's whole probe frame read 1.5 GB of
+    # its file), the whole probe frame only where they see nothing
+    h, w = probe.height, probe.width
+    x0, y0 = max(0, w // 2 - 1), max(0, h // 2 - 1)
+    depth = probe_render(surfels, window_camera(probe, x0, y0, min(w, w // 2 + 2) - x0,
+                                                min(h, h // 2 + 2) - y0), pinhole).depth
+    centre = depth[np.isfinite(depth)]
     if centre.size:
         return float(np.median(centre)), "the surface at the image centre"
+    depth = probe_render(surfels, probe, pinhole).depth
     seen = depth[np.isfinite(depth)]
     if seen.size:
         return float(np.median(seen)), "the median depth of the visible surface"
@@ -401,6 +406,17 @@ def small_camera(camera, longest: int):
         left, right, bottom, top, near = frustum
         middle, half = 0.5 * (left + right), 0.5 * (top - bottom) * width / height
         frustum = (middle - half, middle + half, bottom, top, near)
+    return dataclass_replace(camera, width=width, height=height, frustum=frustum)
+
+
+def window_camera(camera, x0: int, y0: int, width: int, height: int):
+    """The pixels [x0, x0 + width) x [y0, y0 + height) of ``camera``'s frame as a camera of
+    their own: the same eye and view, the frustum cut to them (pixel (i, j) of it is pixel
+    (x0 + i, y0 + j) of the frame, to float rounding)."""
+    left, right, bottom, top, near = camera.frustum_lrbtn()
+    sx, sy = (right - left) / camera.width, (top - bottom) / camera.height
+    frustum = (left + x0 * sx, left + (x0 + width) * sx, top - (y0 + height) * sy,
+               top - y0 * sy, near)
     return dataclass_replace(camera, width=width, height=height, frustum=frustum)
 
 
