@@ -6,6 +6,7 @@
     python bench/prep_memory.py /tmp/synth4m.laz --chunk-points 1e12 --save /tmp/whole.npz
     python bench/prep_memory.py /tmp/synth4m.laz --check /tmp/whole.npz     # chunks vs whole
     python bench/prep_memory.py /tmp/synth20m.laz --render "--size 1920x1080 --aperture 5"
+    python bench/prep_memory.py /tmp/synth20m.laz --render "..." --cache   # twice: the later one
 
 The file is loaded with ``dofsplat.io.load(path, cache="off")`` (the preparation of
 ``prep.pointcloud.points_to_surfels``). ``--save`` writes the surfel arrays (positions,
@@ -17,7 +18,11 @@ whole run use ``/usr/bin/time -v`` (Maximum resident set size). ``--render ARGS`
 first render instead, ``dofsplat render PATH ARGS --no-cache --lod-cache off`` in this
 process (the model prepared and its tree built afresh; the kernels from their cache), and
 prints the peak of its stages: reading the file, merging duplicates, the surfels (in chunks
-past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame. ``--chunk-points
+past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame, each as RSS and
+as the process's own memory (RssAnon: without the pages of the files it maps, which for a
+model kept as a .dofsplat file are the page cache's, mapped around each page a frame reads).
+``--cache`` renders through the caches instead: run twice, the second is a later render
+(a model of 2^21 surfels or more then opens as its .dofsplat file in the cache). ``--chunk-points
 N`` sets that threshold (1e12: the whole cloud at once), so that ``--save`` of one and
 ``--check`` of the other count the rows in which chunks and the whole cloud differ.
 """
@@ -41,6 +46,16 @@ def rss_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+def own_bytes() -> int:
+    """The process's own memory: RssAnon (RSS less the pages of files it maps: a model
+    file's, which the kernel keeps or drops as memory allows, and the libraries')."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
 class StageSampler:
     """A thread that records the highest RSS seen under each stage label."""
 
@@ -48,6 +63,7 @@ class StageSampler:
         self.period = period
         self.stage = "read"
         self.peaks: dict[str, int] = {}
+        self.own: dict[str, int] = {}  # the same for RssAnon
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -57,9 +73,11 @@ class StageSampler:
             time.sleep(self.period)
 
     def _note(self):
-        r = rss_bytes()
+        r, a = rss_bytes(), own_bytes()
         if r > self.peaks.get(self.stage, 0):
             self.peaks[self.stage] = r
+        if a > self.own.get(self.stage, 0):
+            self.own[self.stage] = a
 
     @contextlib.contextmanager
     def under(self, label: str):
@@ -122,7 +140,7 @@ def wrap_render_stages(sampler: StageSampler):
     wrap(sampler, "dofsplat.lod.cache", "build_hierarchy", "LOD tree")
 
 
-def render_stages(path: str, args: str) -> None:
+def render_stages(path: str, args: str, cache: bool = False) -> None:
     import shlex
     import tempfile
 
@@ -130,17 +148,21 @@ def render_stages(path: str, args: str) -> None:
 
     sampler = StageSampler()
     wrap_render_stages(sampler)
+    no_cache = [] if cache else ["--no-cache", "--lod-cache", "off"]
     with tempfile.TemporaryDirectory() as tmp, sampler:
         t0 = time.perf_counter()
-        rc = cli(["render", path, "-o", f"{tmp}/frame.png", "--no-cache", "--lod-cache", "off",
-                  *shlex.split(args)])
+        rc = cli(["render", path, "-o", f"{tmp}/frame.png", *no_cache, *shlex.split(args)])
         seconds = time.perf_counter() - t0
-    print(f"{path}: first render in {seconds:.1f} s (exit {rc}); peak RSS by stage "
-          "(after X: the time after it, up to the next)")
+    what = "render through the cache" if cache else "first render"
+    print(f"{path}: {what} in {seconds:.1f} s (exit {rc}); peak RSS by stage, and of it the "
+          "process's own memory (RssAnon: RSS less the mapped files' pages; after X: the time "
+          "after it, up to the next)")
     for label, peak in sampler.peaks.items():
+        own = sampler.own.get(label, 0)
         label = "the frame (after the tree)" if label == "after LOD tree" else label
-        print(f"  {label:28s} {peak / 1e9:6.2f} GB")
-    print(f"  {'the whole run':28s} {max(sampler.peaks.values()) / 1e9:6.2f} GB")
+        print(f"  {label:28s} {peak / 1e9:6.2f} GB  own {own / 1e9:6.2f} GB")
+    print(f"  {'the whole run':28s} {max(sampler.peaks.values()) / 1e9:6.2f} GB  own "
+          f"{max(sampler.own.values()) / 1e9:6.2f} GB")
 
 
 def main():
@@ -154,9 +176,12 @@ def main():
                              "1e12: the whole cloud at once)")
     parser.add_argument("--render", metavar="ARGS",
                         help="a first render with these dofsplat render options: its stages")
+    parser.add_argument("--cache", action="store_true",
+                        help="with --render: through the caches (a model file's render, or "
+                             "run twice: the first keeps the model, the second reads it)")
     args = parser.parse_args()
     if args.render is not None:
-        return render_stages(args.path, args.render)
+        return render_stages(args.path, args.render, cache=args.cache)
 
     from dofsplat.io import load
     from dofsplat.prep import pointcloud

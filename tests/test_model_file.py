@@ -228,6 +228,26 @@ def test_the_arrays_are_written_a_piece_at_a_time(stored, tmp_path, monkeypatch)
         np.testing.assert_array_equal(np.asarray(getattr(mine, name)), getattr(blocked, name))
 
 
+def test_rows_read_through_the_file(stored, tmp_path):
+    """``read_rows`` reads a stored array's rows through the file, not its memory map (a
+    pass over every row maps none of them): the rows of the map, at any bounds; an array in
+    memory gives its own rows; a file cut short since it was opened is one error line."""
+    model, _, path = stored
+    opened = load(path)
+    for a in (opened.positions, opened.radius, model.positions):
+        for lo, hi in ((0, 7), (5, 1000), (1590, 5000), (2000, 3000), (0, len(a))):
+            got = model_file.read_rows(a, lo, hi)
+            np.testing.assert_array_equal(got, np.asarray(a[lo:hi]))
+            assert got.dtype == a.dtype and not isinstance(got, np.memmap)  # (read, not mapped)
+    copy = tmp_path / "copy.dofsplat"
+    copy.write_bytes(path.read_bytes())
+    weights = load(copy).weight  # the last surfel array in the file
+    with open(copy, "r+b") as f:
+        f.truncate(weights.offset + 100)
+    with pytest.raises(DofsplatError, match="cut short"):
+        model_file.read_rows(weights, 0, len(weights))
+
+
 def test_a_tree_of_another_model_is_refused(stored, tmp_path):
     model, _, _ = stored
     other = build_hierarchy(bumpy_model(seed=5))

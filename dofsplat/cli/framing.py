@@ -281,6 +281,7 @@ def fit_camera(positions, radius, lo, hi, width: int, height: int, fov: float, d
     import numpy as np
 
     from ..camera import Camera
+    from ..io.model_file import read_rows
 
     d = np.asarray(direction, float)
     d /= np.linalg.norm(d)
@@ -291,11 +292,11 @@ def fit_camera(positions, radius, lo, hi, width: int, height: int, fov: float, d
     ty = math.tan(math.radians(fov) / 2.0) * FILL
     tx = ty * width / height
     # the maxima over the disks, a chunk of rows at a time (a stored model's positions are a
-    # memory map: read once, never held as float64 copies)
+    # memory map: read once through its file, never held as float64 copies)
     top = np.full(6, -np.inf)  # far_x, near_x, far_y, near_y, z, r
     for i in range(0, max(len(positions), 1), FIT_CHUNK):
-        p = np.asarray(positions[i:i + FIT_CHUNK], np.float64) - centre
-        r = np.asarray(radius[i:i + FIT_CHUNK], np.float64)
+        p = np.asarray(read_rows(positions, i, i + FIT_CHUNK), np.float64) - centre
+        r = np.asarray(read_rows(radius, i, i + FIT_CHUNK), np.float64)
         if not len(p):
             continue
         x, y, z = p @ right, p @ true_up, p @ d

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import mmap
 import struct
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -255,6 +256,25 @@ def read_model_file(path, material: Material | None = None) -> Surfels:
     surfels._lod_hierarchy = tree
     surfels.model_file = str(path.resolve())
     return surfels
+
+
+def read_rows(a: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """The rows ``a[lo:hi]``. For a memory map of a model file (one of
+    ``read_model_file``'s arrays) the rows are read through the file, not the map: a pass
+    over every row (``framing.fit_camera``) then leaves none of the file's pages mapped
+    in the process, counted in its RSS, and the page cache keeps or drops them."""
+    if not (isinstance(a, np.memmap) and isinstance(a.base, mmap.mmap) and a.ndim
+            and a.flags.c_contiguous and a.filename):
+        return a[lo:hi]
+    lo, hi = max(0, min(lo, len(a))), max(0, min(hi, len(a)))
+    n = max(hi - lo, 0)
+    row = a.itemsize * int(np.prod(a.shape[1:], dtype=np.int64))
+    with open(a.filename, "rb") as f:
+        f.seek(a.offset + lo * row)
+        out = np.fromfile(f, dtype=a.dtype, count=n * (row // a.itemsize))
+    if out.size != n * (row // a.itemsize):
+        raise DofsplatError(f"{a.filename}: not a complete dofsplat model file (cut short)")
+    return out.reshape((n,) + a.shape[1:])
 
 
 def read_header(path: Path) -> dict:
