@@ -5,7 +5,8 @@ Two kinds of file live under one folder (``$XDG_CACHE_HOME/dofsplat`` or
 
 * ``surfels/``: models that took preparation to become surfels (normals, radii and
   normalisation of a point cloud, sampling of a mesh: seconds to minutes), keyed by the
-  file's content, the loader's options and the preparation code itself (``io.load``);
+  file's content, the loader's options and the preparation code itself (``io.load``); a
+  large one as a ``.dofsplat`` file with its LOD tree (``io.prepared.keep_stored``);
 * ``lod/``: LOD hierarchies, keyed by the surfel arrays they were built from
   (``lod.cache``), and Gaussian scenes' trees, ``gaussians-*.npz`` (``gauss.lod``).
 

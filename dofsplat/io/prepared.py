@@ -14,7 +14,11 @@ preparation code. The key is a hash of:
   normalisations render, "render" its captures and "object" its level):
   a change to how surfels are made makes old entries unused (the size cap evicts them).
 
-Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model read back from the
+Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model of STORED_FROM
+surfels or more is kept as a ``.dofsplat`` file with its LOD tree (``io.model_file``, what
+``dofsplat prepare`` writes) and returned as that file's memory maps, its first load too
+(``keep_stored``): a later render opens it in milliseconds and reads the pages its frame
+needs, where an ``.npz`` would be read whole. A model read back from the
 cache does not repeat the warnings its first load gave (dropped NaN points, for instance).
 Gaussian scenes (``dofsplat.Gaussians``) are never kept: they need no preparation, and
 ``dofsplat.io.load`` does not look for them here.
