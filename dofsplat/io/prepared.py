@@ -56,20 +56,14 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
     file = cache.cache_folder("surfels") / f"{key}.npz" if key else None
     t0 = time.perf_counter()
     stored = file.with_suffix(".dofsplat") if file is not None else None
-    if stored is not None and _exists(stored):
-        surfels = read_stored(stored)
-        if surfels is not None:
-            cache.touch(stored)
-            surfels.load_info = {"seconds": time.perf_counter() - t0, "from_cache": True,
-                                 "cache_file": str(stored)}
-            return surfels
-    if file is not None and _exists(file):
-        surfels = read_surfels(file)
-        if surfels is not None:
-            cache.touch(file)
-            surfels.load_info = {"seconds": time.perf_counter() - t0, "from_cache": True,
-                                 "cache_file": str(file)}
-            return surfels
+    for kept, read in ((stored, read_stored), (file, read_surfels)):  # (a large model, a small)
+        if kept is not None and _exists(kept):
+            surfels = read(kept)
+            if surfels is not None:
+                cache.touch(kept)
+                surfels.load_info = {"seconds": time.perf_counter() - t0, "from_cache": True,
+                                     "cache_file": str(kept)}
+                return surfels
     surfels = loader(path, **options)
     seconds = time.perf_counter() - t0
     surfels.load_info = {"seconds": seconds, "from_cache": False, "cache_file": None}
