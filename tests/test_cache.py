@@ -92,19 +92,28 @@ def stored_from(monkeypatch):
     monkeypatch.setattr(prepared, "STORED_FROM", 100)
 
 
+@pytest.mark.parametrize("memory", ["short", "plenty"])
 def test_a_large_model_is_kept_as_a_model_file(cache_dir, points_ply, counted_loader,
-                                               stored_from):
+                                               stored_from, monkeypatch, memory):
     """From STORED_FROM surfels on, a prepared model is kept as a .dofsplat file with its
-    tree (``io.prepared.keep_stored``) and returned as its memory maps, the first time too:
-    a later load opens it without reading it, and both draw the image of the model
-    prepared in memory, bit for bit, LOD on and off."""
+    tree (``io.prepared.keep_stored``): a later load opens it without reading it. The first
+    load returns the file's memory maps where memory is short against the model, else the
+    model in memory with the tree kept on it (not built again); all draw the image of the
+    model prepared in memory, bit for bit, LOD on and off."""
     import dofsplat as ds
-    from dofsplat.lod import hierarchy_for
+    from dofsplat import frame
+    from dofsplat.lod import cache as lod_cache, hierarchy_for
     from conftest import front_camera
 
+    monkeypatch.setattr(frame, "available_memory", lambda: 10_000 if memory == "short" else 1e12)
     first = load(points_ply)
-    assert isinstance(first.positions, np.memmap) and not first.load_info["from_cache"]
+    assert isinstance(first.positions, np.memmap) == (memory == "short")
+    assert not first.load_info["from_cache"]
     assert first.load_info["cache_file"].endswith(".dofsplat")
+    if memory == "plenty":
+        tree = first._lod_hierarchy
+        monkeypatch.setattr(lod_cache, "build_hierarchy", None)  # (not called)
+        assert lod_cache.cached_hierarchy(first) is tree
     assert [p.suffix for p in cache.cached_files()] == [".dofsplat"]
     again = load(points_ply)
     assert again.load_info["from_cache"] and len(counted_loader) == 1

@@ -16,9 +16,9 @@ preparation code. The key is a hash of:
 
 Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model of STORED_FROM
 surfels or more is kept as a ``.dofsplat`` file with its LOD tree (``io.model_file``, what
-``dofsplat prepare`` writes) and returned as that file's memory maps, its first load too
-(``keep_stored``): a later render opens it in milliseconds and reads the pages its frame
-needs, where an ``.npz`` would be read whole. A model read back from the
+``dofsplat prepare`` writes; ``keep_stored``): a later render opens it in milliseconds and
+reads the pages its frame needs, where an ``.npz`` would be read whole. Its first load
+returns the file's memory maps too where the model is large against the memory available. A model read back from the
 cache does not repeat the warnings its first load gave (dropped NaN points, for instance).
 Gaussian scenes (``dofsplat.Gaussians``) are never kept: they need no preparation, and
 ``dofsplat.io.load`` does not look for them here.
@@ -45,6 +45,7 @@ from ..surfels import Material, Surfels
 
 MIN_SECONDS = 0.5  # a model that loads faster is not worth a copy on disk
 STORED_FROM = 1 << 21  # surfels from which a model is kept as a .dofsplat file with its tree
+FROM_FILE = 16  # ... and its first frame drawn from the file past 1/16 of the memory available
 OPTIONAL = ("opacity", "tangent", "radius_v", "weight")
 _CODE_HASH: list[str] = []
 
@@ -82,11 +83,14 @@ def load_prepared(path: Path, loader, options: dict, use_cache: bool = True):
 
 def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
     """A large model kept as a ``.dofsplat`` file (``io.model_file``: its LOD tree built
-    now, the render's own) and returned as that file's memory maps: the model in memory is
-    dropped, and a later load opens the file in milliseconds instead of reading the model
-    whole. Where the file cannot be kept (an unwritable cache, a model larger than the
-    cap), the model in memory, its tree attached so that the render does not build it
-    again."""
+    now, the render's own), so that a later load opens the file in milliseconds instead of
+    reading the model whole. Returned as that file's memory maps, the model in memory
+    dropped, where the model and its tree take more than 1/FROM_FILE of the memory available
+    now (``frame.available_memory``): the first frame then holds what a later one holds.
+    Otherwise, or where the file cannot be kept (an unwritable cache, a model larger than
+    the cap), the model in memory, its tree attached so that the render does not build it
+    again (the same frames: ``tests/test_cache.py``)."""
+    from ..frame import available_memory
     from ..lod.hierarchy import build_hierarchy
     from .model_file import write_model_file
 
@@ -98,9 +102,16 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
         cache.enforce_cap(keep=stored)  # (a model larger than the cap goes at once)
     except (OSError, DofsplatError):
         pass  # an unwritable cache costs the preparation next time, no more
-    kept = read_stored(stored) if _exists(stored) else None
+    held = tree.nbytes() + sum(getattr(surfels, name).nbytes for name in
+                               ("positions", "normals", "radius", "colors", *OPTIONAL)
+                               if getattr(surfels, name) is not None)
+    kept = None
+    if _exists(stored) and held * FROM_FILE > available_memory():
+        kept = read_stored(stored)
     if kept is None:
         surfels._lod_hierarchy = tree  # (lod.cache.cached_hierarchy takes it)
+        if _exists(stored):
+            surfels.load_info = {**info, "cache_file": str(stored)}
         return surfels
     kept.load_info = {**info, "cache_file": str(stored)}
     return kept
