@@ -131,6 +131,33 @@ def test_a_large_model_is_kept_as_a_model_file(cache_dir, points_ply, counted_lo
             assert np.abs(a.image - b.image).max() < 1e-6
 
 
+def test_a_model_file_in_the_cache_pickles_with_its_arrays(cache_dir, points_ply, stored_from,
+                                                           monkeypatch):
+    """A model the cache keeps as a .dofsplat file lies in this machine's cache folder, which
+    a Dask worker on another machine (``animate --scheduler``) does not have: it pickles with
+    its arrays and its tree, and arrives as a model in memory, the same content, which
+    renders without the file."""
+    import pickle
+
+    import dofsplat as ds
+    from dofsplat import frame
+    from dofsplat.fingerprint import content_hash
+    from conftest import front_camera
+
+    monkeypatch.setattr(frame, "available_memory", lambda: 10_000)
+    model = load(points_ply)
+    assert isinstance(model.positions, np.memmap)
+    data = pickle.dumps(model)
+    assert len(data) > model.positions.nbytes
+    (entry,) = cache.cached_files("surfels")
+    entry.unlink()  # (another machine)
+    again = pickle.loads(data)
+    assert type(again) is ds.Surfels and not hasattr(again, "model_file")
+    assert content_hash(again) == content_hash(model, cached=True)  # (the header's, of its arrays)
+    camera = front_camera(48, 36, distance=3.0)
+    np.testing.assert_array_equal(ds.render(again, camera).image, ds.render(model, camera).image)
+
+
 def test_a_damaged_model_file_is_prepared_again(cache_dir, points_ply, counted_loader,
                                                 stored_from):
     load(points_ply)

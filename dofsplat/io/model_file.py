@@ -195,10 +195,28 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
 class StoredSurfels(Surfels):
     """Surfels whose arrays are memory maps of a ``.dofsplat`` file (``read_model_file``).
     Pickled as the file's path: a Dask worker (``animate --scheduler``) opens the file
-    itself, at the same path (a shared disk), instead of receiving a copy of its arrays."""
+    itself, at the same path (a shared disk), instead of receiving a copy of its arrays.
+    But a file the cache keeps (``io.prepared.keep_stored``) lies in this machine's own
+    cache folder, which another machine's worker does not have: such a model is pickled
+    with its arrays and tree, as a model in memory is, and arrives as one."""
 
     def __reduce__(self):
+        from .. import cache
+
+        try:
+            cached = Path(self.model_file).is_relative_to(cache.cache_root().resolve())
+        except (OSError, ValueError):
+            cached = False
+        if cached:
+            return _in_memory, ({k: v for k, v in self.__dict__.items() if k != "model_file"},)
         return read_model_file, (self.model_file, self.material)
+
+
+def _in_memory(state: dict) -> Surfels:
+    """A ``StoredSurfels`` of the cache, unpickled: Surfels with its arrays and tree."""
+    surfels = Surfels.__new__(Surfels)
+    surfels.__dict__.update(state)
+    return surfels
 
 
 def read_model_file(path, material: Material | None = None) -> Surfels:
