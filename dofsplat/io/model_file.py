@@ -71,46 +71,14 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
     and its tree, the write holds the tree's row maps (16 bytes a stored row) and a piece."""
     from ..fingerprint import HashStream
     from ..io.images import atomic_write
-    from ..lod import FORMAT_VERSION, min_leaf_geo
-    from ..lod.hierarchy import ATTRIBUTES, TREE_FIELDS, fingerprint, fingerprint_salt
+    from ..lod import FORMAT_VERSION
+    from ..lod.hierarchy import TREE_FIELDS, fingerprint, fingerprint_salt
 
     if tree.n_surfels != len(surfels) or tree.fingerprint != fingerprint(surfels, cached=True):
         raise DofsplatError("write_model_file: the LOD tree was not built for these surfels")
     if tree.block_levels and tree.block_levels != block_levels:
         raise ValueError(f"the tree is in blocks of {tree.block_levels} levels already")
-    order = np.asarray(tree.order)
-    # each array of the file: (dtype, shape, its rows in the file's order, a piece at a time)
-    arrays = {}
-    for name in SURFEL_ARRAYS:
-        a = getattr(surfels, name)
-        if a is not None:
-            arrays[f"surfels.{name}"] = _gathered(a, order)
-    # the default camera's sample (Surfels.sample), the source's own
-    sample = surfels.sample(VIEW_SAMPLE)
-    for name in SURFEL_ARRAYS:
-        a = getattr(sample, name)
-        if a is not None:
-            arrays[f"sample.{name}"] = _gathered(a)
-    arrays["tree.order"] = (order.dtype, order.shape, lambda: (  # the identity
-        np.arange(i, min(i + ROWS, len(order)), dtype=order.dtype)
-        for i in range(0, len(order), ROWS)))
-    geo = min_leaf_geo(tree, surfels, tree.small)
-    if block_levels and tree.block_levels == block_levels:  # a stored model's: as it is
-        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
-        arrays["tree.child"] = _gathered(tree.child)
-        arrays["tree.min_geo"] = _gathered(geo)
-    elif block_levels:
-        file_row, child = tree.block_rows(block_levels)
-        rows = np.empty_like(file_row)  # the preorder row at each row of the file
-        rows[file_row] = np.arange(len(file_row))
-        del file_row
-        arrays.update({f"tree.{name}": _gathered(getattr(tree, name), rows)
-                       for name in ATTRIBUTES})
-        arrays["tree.child"] = _gathered(child)
-        arrays["tree.min_geo"] = _gathered(geo[:len(rows)], rows)
-    else:
-        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
-        arrays["tree.min_geo"] = _gathered(geo)
+    arrays = _file_arrays(surfels, tree, block_levels)
     # the bounds are the leaf-ordered model's (a box and a largest radius: any order's)
     lo, hi = surfels.bounds()
     view_lo, view_hi = surfels.view_bounds()
@@ -190,6 +158,50 @@ def write_model_file(path, surfels: Surfels, tree, source: dict | None = None,
             fh.write(TRAILER_MARK + digest)  # last: the file is complete
 
     return atomic_write(path, write)
+
+
+def _file_arrays(surfels: Surfels, tree, block_levels: int) -> dict:
+    """Each array of the file, by name, in the file's order: (dtype, shape, pieces), pieces()
+    yielding its rows in the file's order ROWS at a time (``_gathered``): the surfels in the
+    tree's leaf order, the default camera's sample, the tree's identity order, its rows in
+    blocks of ``block_levels`` levels (``Hierarchy.block_rows``; 0: preorder) with each one's
+    first child's row, and the pinhole walk's bound per row (``lod.min_leaf_geo``)."""
+    from ..lod import min_leaf_geo
+    from ..lod.hierarchy import ATTRIBUTES
+
+    order = np.asarray(tree.order)
+    arrays = {}
+    for name in SURFEL_ARRAYS:
+        a = getattr(surfels, name)
+        if a is not None:
+            arrays[f"surfels.{name}"] = _gathered(a, order)
+    # the default camera's sample (Surfels.sample), the source's own
+    sample = surfels.sample(VIEW_SAMPLE)
+    for name in SURFEL_ARRAYS:
+        a = getattr(sample, name)
+        if a is not None:
+            arrays[f"sample.{name}"] = _gathered(a)
+    arrays["tree.order"] = (order.dtype, order.shape, lambda: (  # the identity
+        np.arange(i, min(i + ROWS, len(order)), dtype=order.dtype)
+        for i in range(0, len(order), ROWS)))
+    geo = min_leaf_geo(tree, surfels, tree.small)
+    if block_levels and tree.block_levels == block_levels:  # a stored model's: as it is
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
+        arrays["tree.child"] = _gathered(tree.child)
+        arrays["tree.min_geo"] = _gathered(geo)
+    elif block_levels:
+        file_row, child = tree.block_rows(block_levels)
+        rows = np.empty_like(file_row)  # the preorder row at each row of the file
+        rows[file_row] = np.arange(len(file_row))
+        del file_row
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name), rows)
+                       for name in ATTRIBUTES})
+        arrays["tree.child"] = _gathered(child)
+        arrays["tree.min_geo"] = _gathered(geo[:len(rows)], rows)
+    else:
+        arrays.update({f"tree.{name}": _gathered(getattr(tree, name)) for name in ATTRIBUTES})
+        arrays["tree.min_geo"] = _gathered(geo)
+    return arrays
 
 
 class StoredSurfels(Surfels):
