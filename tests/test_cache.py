@@ -174,7 +174,9 @@ def test_a_model_larger_than_the_cap_keeps_its_tree(cache_dir, points_ply, monke
     from dofsplat.lod import cache as lod_cache
 
     monkeypatch.setenv("DOFSPLAT_CACHE_MAX", "1000")
-    model = load(points_ply)
+    with pytest.warns(UserWarning, match=r"larger than the cache \(1000 B\): it is prepared "
+                      r"again next time; `dofsplat prepare .*grid points.ply` keeps it"):
+        model = load(points_ply)
     assert not isinstance(model.positions, np.memmap) and cache.cached_files() == []
     built = []
     monkeypatch.setattr(lod_cache, "build_hierarchy", lambda *a, **k: built.append(1))

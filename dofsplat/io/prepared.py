@@ -34,6 +34,7 @@ import os
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 
@@ -99,7 +100,13 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
     try:
         stored.parent.mkdir(parents=True, exist_ok=True)
         write_model_file(stored, surfels, tree, source={"path": str(source)})
-        cache.enforce_cap(keep=stored)  # (a model larger than the cap goes at once)
+        size = stored.stat().st_size
+        if stored in cache.enforce_cap(keep=stored):  # larger than the cap: gone at once
+            warnings.warn(
+                f"{source}: the prepared model ({cache.format_bytes(size)} with its LOD tree) "
+                f"is larger than the cache ({cache.format_bytes(cache.max_bytes())}): it is "
+                f"prepared again next time; `dofsplat prepare {source}` keeps it in a file "
+                f"of its own (or raise DOFSPLAT_CACHE_MAX)")
     except (OSError, DofsplatError):
         pass  # an unwritable cache costs the preparation next time, no more
     held = tree.nbytes() + sum(getattr(surfels, name).nbytes for name in
