@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import math
 import numbers
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .camera import Camera, EyeLens, ThinLens
 from .errors import DofsplatError
+from .machine import available_memory
 from .shading import HEADLIGHT, Light
 from .splat.subaperture import (MAX_LENS_SAMPLES, ResidualLens, aperture_second_moment,
                                 subaperture_pattern)
@@ -293,13 +293,12 @@ def kernel_floor(settings: RenderSettings) -> float:
 
 SPLAT_ROW_BYTES = 124  # a CPU splat row: N_FIELDS float32 (splat/project.py)
 MIN_SPLAT_ROWS = 1 << 19  # the automatic budget never bands below this (65 MB of rows)
-FALLBACK_MEMORY = 4 << 30  # what the budget assumes is available where it cannot be read
 
 
 def splat_rows_budget(settings: RenderSettings) -> int:
     """How many splat rows a CPU frame may hold at once (``backends.cpu.draw_cut``):
     ``settings.max_splat_rows``, or by default as many as fit in a quarter of the memory
-    available now (Linux's MemAvailable; FALLBACK_MEMORY where the system does not say),
+    available now (``machine.available_memory``),
     at least MIN_SPLAT_ROWS. A CPU frame whose LOD cut has more splats is drawn band by
     band: the same image, bit for bit, slower (docs/maths.md, "Memory and determinism").
     Frames without LOD or with the lens in parts, and the GPU's, do not use it."""
@@ -308,20 +307,6 @@ def splat_rows_budget(settings: RenderSettings) -> int:
     return max(MIN_SPLAT_ROWS, available_memory() // (4 * SPLAT_ROW_BYTES))
 
 
-def available_memory() -> int:
-    """Bytes of memory available to a new allocation without swapping: /proc/meminfo's
-    MemAvailable on Linux, else the free pages sysconf reports, else FALLBACK_MEMORY."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (AttributeError, ValueError, OSError):
-        return FALLBACK_MEMORY
 
 
 def front_pass(merge, settings: RenderSettings) -> bool:

@@ -101,11 +101,11 @@ def test_a_large_model_is_kept_as_a_model_file(cache_dir, points_ply, counted_lo
     model in memory with the tree kept on it (not built again); all draw the image of the
     model prepared in memory, bit for bit, LOD on and off."""
     import dofsplat as ds
-    from dofsplat import frame
+    from dofsplat import machine
     from dofsplat.lod import cache as lod_cache, hierarchy_for
     from conftest import front_camera
 
-    monkeypatch.setattr(frame, "available_memory", lambda: 10_000 if memory == "short" else 1e12)
+    monkeypatch.setattr(machine, "available_memory", lambda: 10_000 if memory == "short" else 1e12)
     first = load(points_ply)
     assert isinstance(first.positions, np.memmap) == (memory == "short")
     assert not first.load_info["from_cache"]
@@ -140,11 +140,11 @@ def test_a_model_file_in_the_cache_pickles_with_its_arrays(cache_dir, points_ply
     import pickle
 
     import dofsplat as ds
-    from dofsplat import frame
+    from dofsplat import machine
     from dofsplat.fingerprint import content_hash
     from conftest import front_camera
 
-    monkeypatch.setattr(frame, "available_memory", lambda: 10_000)
+    monkeypatch.setattr(machine, "available_memory", lambda: 10_000)
     model = load(points_ply)
     assert isinstance(model.positions, np.memmap)
     data = pickle.dumps(model)

@@ -87,11 +87,11 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
     now, the render's own), so that a later load opens the file in milliseconds instead of
     reading the model whole. Returned as that file's memory maps, the model in memory
     dropped, where the model and its tree take more than 1/FROM_FILE of the memory available
-    now (``frame.available_memory``): the first frame then holds what a later one holds.
+    now (``machine.available_memory``): the first frame then holds what a later one holds.
     Otherwise, or where the file cannot be kept (an unwritable cache, a model larger than
     the cap), the model in memory, its tree attached so that the render does not build it
     again (the same frames: ``tests/test_cache.py``)."""
-    from ..frame import available_memory
+    from ..machine import available_memory
     from ..lod.hierarchy import build_hierarchy
     from .model_file import write_model_file
 
