@@ -99,7 +99,8 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
     tree = build_hierarchy(surfels, progress=sys.stderr.isatty())
     try:
         stored.parent.mkdir(parents=True, exist_ok=True)
-        write_model_file(stored, surfels, tree, source={"path": str(source)})
+        write_model_file(stored, surfels, tree, source={"path": str(source)},
+                         progress=sys.stderr.isatty())
         size = stored.stat().st_size
         if stored in cache.enforce_cap(keep=stored):  # larger than the cap: gone at once
             warnings.warn(
