@@ -298,15 +298,12 @@ MIN_SPLAT_ROWS = 1 << 19  # the automatic budget never bands below this (65 MB o
 def splat_rows_budget(settings: RenderSettings) -> int:
     """How many splat rows a CPU frame may hold at once (``backends.cpu.draw_cut``):
     ``settings.max_splat_rows``, or by default as many as fit in a quarter of the memory
-    available now (``machine.available_memory``),
-    at least MIN_SPLAT_ROWS. A CPU frame whose LOD cut has more splats is drawn band by
+    available now (``machine.available_memory``), at least MIN_SPLAT_ROWS. A CPU frame whose LOD cut has more splats is drawn band by
     band: the same image, bit for bit, slower (docs/maths.md, "Memory and determinism").
     Frames without LOD or with the lens in parts, and the GPU's, do not use it."""
     if settings.max_splat_rows is not None:
         return int(settings.max_splat_rows)
     return max(MIN_SPLAT_ROWS, available_memory() // (4 * SPLAT_ROW_BYTES))
-
-
 
 
 def front_pass(merge, settings: RenderSettings) -> bool:

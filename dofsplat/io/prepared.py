@@ -18,8 +18,9 @@ Any load of MIN_SECONDS or more is kept, a large surfel PLY too. A model of STOR
 surfels or more is kept as a ``.dofsplat`` file with its LOD tree (``io.model_file``, what
 ``dofsplat prepare`` writes; ``keep_stored``): a later render opens it in milliseconds and
 reads the pages its frame needs, where an ``.npz`` would be read whole. Its first load
-returns the file's memory maps too where the model is large against the memory available. A model read back from the
-cache does not repeat the warnings its first load gave (dropped NaN points, for instance).
+returns the file's memory maps too where the model is large against the memory available.
+A model read back from the cache does not repeat the warnings its first load gave (dropped
+NaN points, for instance).
 Gaussian scenes (``dofsplat.Gaussians``) are never kept: they need no preparation, and
 ``dofsplat.io.load`` does not look for them here.
 
@@ -93,7 +94,7 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
     again (the same frames: ``tests/test_cache.py``)."""
     from ..machine import available_memory
     from ..lod.hierarchy import build_hierarchy
-    from .model_file import write_model_file
+    from .model_file import SURFEL_ARRAYS, write_model_file
 
     info = surfels.load_info
     tree = build_hierarchy(surfels, progress=sys.stderr.isatty())
@@ -110,8 +111,7 @@ def keep_stored(stored: Path, surfels: Surfels, source: Path) -> Surfels:
                 f"of its own (or raise DOFSPLAT_CACHE_MAX)")
     except (OSError, DofsplatError):
         pass  # an unwritable cache costs the preparation next time, no more
-    held = tree.nbytes() + sum(getattr(surfels, name).nbytes for name in
-                               ("positions", "normals", "radius", "colors", *OPTIONAL)
+    held = tree.nbytes() + sum(getattr(surfels, name).nbytes for name in SURFEL_ARRAYS
                                if getattr(surfels, name) is not None)
     kept = None
     if _exists(stored) and held * FROM_FILE > available_memory():

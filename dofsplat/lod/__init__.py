@@ -8,7 +8,7 @@ ordinary projection kernel.
 
 from __future__ import annotations
 
-from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, fingerprint
+from .hierarchy import FORMAT_VERSION, Hierarchy, build_hierarchy, built_for, fingerprint
 from .select import NO_CHILD, cut_nodes, gather_gradients, gather_splats, select_nodes
 
 __all__ = ["FORMAT_VERSION", "Hierarchy", "build_hierarchy", "fingerprint", "gather_cut",
@@ -26,8 +26,7 @@ def hierarchy_for(surfels, progress: bool = False) -> Hierarchy:
     ``build_hierarchy``) after one.
     """
     tree = getattr(surfels, "_lod_hierarchy", None)
-    if tree is None or tree.n_surfels != len(surfels) or \
-            tree.fingerprint != fingerprint(surfels, cached=True):
+    if not built_for(tree, surfels):
         tree = build_hierarchy(surfels, progress=progress)
         surfels._lod_hierarchy = tree
     return tree

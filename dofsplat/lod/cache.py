@@ -17,7 +17,7 @@ from typing import Callable
 
 from .. import cache
 from ..errors import DofsplatError
-from .hierarchy import Hierarchy, build_hierarchy, default_small, fingerprint
+from .hierarchy import Hierarchy, build_hierarchy, built_for, default_small, fingerprint
 
 
 def cache_folder() -> Path:
@@ -37,8 +37,7 @@ def cached_hierarchy(surfels, cache_arg: str | os.PathLike | None = "auto",
     kept = getattr(surfels, "_lod_hierarchy", None)
     if kept is not None and getattr(kept, "leaf_ordered", False):
         return kept  # a stored model's own tree (io.model_file), checked when it was opened
-    if kept is not None and kept.n_surfels == len(surfels) and \
-            kept.fingerprint == fingerprint(surfels, cached=True):
+    if built_for(kept, surfels):
         return kept  # built with the model (io.prepared.keep_stored, lod.hierarchy_for)
     if cache_arg is None or str(cache_arg) == "off":
         path = None

@@ -315,6 +315,13 @@ def fingerprint_salt() -> str:
     return f"lod v{FORMAT_VERSION}"
 
 
+def built_for(tree: "Hierarchy | None", surfels: Surfels) -> bool:
+    """Whether ``tree`` was built from these surfel arrays (their count and ``fingerprint``,
+    kept on the model while its arrays are the same objects)."""
+    return tree is not None and tree.n_surfels == len(surfels) and \
+        tree.fingerprint == fingerprint(surfels, cached=True)
+
+
 def default_small(n_surfels: int) -> int:
     """The ``small`` a tree over n surfels is built with: SMALL_NODE from COMPACT_FROM on."""
     return SMALL_NODE if n_surfels >= COMPACT_FROM else 1
