@@ -45,6 +45,7 @@ class Material:
             raise DofsplatError(f"material shininess must be > 0, got {self.shininess}")
 
 
+VALIDATE_ROWS = 1 << 20  # rows that ``Surfels._validate`` checks at a time
 VIEW_SAMPLE = 20_000  # the default camera's sample of a model (cli.framing.visibility_sample)
 
 
@@ -103,46 +104,63 @@ class Surfels:
         return self.tangent is not None
 
     def _validate(self):
+        """Check every row, and mend in place those that need it (non-unit normals and
+        tangents, colours below 0, opacities outside [0, 1]), ``VALIDATE_ROWS`` rows at a
+        time: the temporaries are a block's, whatever the model's size (issue 50: a model
+        of memory maps is never read whole into memory)."""
         n = len(self)
-        finite = [self.positions, self.normals, self.radius, self.colors, self.opacity]
-        finite += [a for a in (self.tangent, self.radius_v, self.weight) if a is not None]
-        for a in finite:
-            if not np.all(np.isfinite(a)):
-                raise DofsplatError("surfel arrays contain NaN or inf; use Surfels.from_arrays "
-                                    "to drop such rows")
-        lengths = np.linalg.norm(self.normals, axis=1)
-        bad = int(np.count_nonzero(lengths < 1e-12))
-        if bad:
-            raise DofsplatError(f"{bad} of {n} surfels have a zero-length normal")
-        # rescale only rows that are not unit already: re-normalising a unit float32 vector
-        # can move it by an ulp, and a file's normals should survive a round trip exactly
-        off = np.abs(lengths - 1.0) > 1e-6
-        if off.any():
-            self._writable("normals")[off] /= lengths[off, None]
-        bad = int(np.count_nonzero(self.radius <= 0))
-        if self.radius_v is not None:
-            bad = max(bad, int(np.count_nonzero(self.radius_v <= 0)))
-        if bad:
-            raise DofsplatError(f"{bad} of {n} surfels have a radius <= 0")
-        if self.tangent is not None:
-            # project the tangent into the surfel's plane and normalise it
-            t64 = self.tangent.astype(np.float64)
-            t = t64 - np.sum(t64 * self.normals, 1)[:, None] * self.normals
-            tl = np.linalg.norm(t, axis=1)
-            bad = int(np.count_nonzero(tl < 1e-9))
-            if bad:
-                raise DofsplatError(f"{bad} of {n} elliptical surfels have a tangent "
-                                    "parallel to their normal")
-            # as for normals: leave tangents that are unit and in the plane already untouched
-            off = (np.abs(np.linalg.norm(t64, axis=1) - 1.0) > 1e-6) | (np.abs(tl - 1.0) > 1e-6)
-            if off.any():
-                self._writable("tangent")[off] = (t[off] / tl[off, None]).astype(np.float32)
-        if np.any(self.colors < 0.0):
-            np.clip(self.colors, 0.0, None, out=self._writable("colors"))
-        if np.any((self.opacity < 0.0) | (self.opacity > 1.0)):
-            np.clip(self.opacity, 0.0, 1.0, out=self._writable("opacity"))
-        if self.weight is not None and np.any(self.weight < 0):
-            raise DofsplatError("surfel normalisation weights must be >= 0")
+        names = ["positions", "normals", "radius", "colors", "opacity", "tangent",
+                 "radius_v", "weight"]
+        zero_normals = parallel = 0
+        non_positive = [0, 0]  # radius, radius_v
+        for a in range(0, max(n, 1), VALIDATE_ROWS):
+            rows = slice(a, a + VALIDATE_ROWS)
+            for name in names:
+                v = getattr(self, name)
+                if v is not None and not np.all(np.isfinite(v[rows])):
+                    raise DofsplatError("surfel arrays contain NaN or inf; use "
+                                        "Surfels.from_arrays to drop such rows")
+            normals = self.normals[rows]
+            lengths = np.linalg.norm(normals, axis=1)
+            zero_normals += int(np.count_nonzero(lengths < 1e-12))
+            # rescale only rows that are not unit already: re-normalising a unit float32
+            # vector can move it by an ulp, and a file's normals should survive a round
+            # trip exactly
+            off = np.abs(lengths - 1.0) > 1e-6
+            if off.any() and not zero_normals:
+                self._writable("normals")[a + np.flatnonzero(off)] /= lengths[off, None]
+            non_positive[0] += int(np.count_nonzero(self.radius[rows] <= 0))
+            if self.radius_v is not None:
+                non_positive[1] += int(np.count_nonzero(self.radius_v[rows] <= 0))
+            if self.tangent is not None and not zero_normals:
+                # project the tangent into the surfel's plane and normalise it
+                normals = self.normals[rows]
+                t64 = self.tangent[rows].astype(np.float64)
+                t = t64 - np.sum(t64 * normals, 1)[:, None] * normals
+                tl = np.linalg.norm(t, axis=1)
+                parallel += int(np.count_nonzero(tl < 1e-9))
+                # as for normals: leave tangents that are unit and in the plane untouched
+                off = ((np.abs(np.linalg.norm(t64, axis=1) - 1.0) > 1e-6)
+                       | (np.abs(tl - 1.0) > 1e-6))
+                if off.any() and not parallel:
+                    self._writable("tangent")[a + np.flatnonzero(off)] = (
+                        t[off] / tl[off, None]).astype(np.float32)
+            if np.any(self.colors[rows] < 0.0):
+                colors = self._writable("colors")
+                np.clip(colors[rows], 0.0, None, out=colors[rows])
+            opacity = self.opacity[rows]
+            if np.any((opacity < 0.0) | (opacity > 1.0)):
+                opacity = self._writable("opacity")
+                np.clip(opacity[rows], 0.0, 1.0, out=opacity[rows])
+            if self.weight is not None and np.any(self.weight[rows] < 0):
+                raise DofsplatError("surfel normalisation weights must be >= 0")
+        if zero_normals:
+            raise DofsplatError(f"{zero_normals} of {n} surfels have a zero-length normal")
+        if max(non_positive):
+            raise DofsplatError(f"{max(non_positive)} of {n} surfels have a radius <= 0")
+        if parallel:
+            raise DofsplatError(f"{parallel} of {n} elliptical surfels have a tangent "
+                                "parallel to their normal")
 
     def _writable(self, name: str) -> np.ndarray:
         """The array ``name``, copied first where it cannot be written (a prepared model's

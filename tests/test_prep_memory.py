@@ -38,7 +38,7 @@ def whole_array_surfels(positions, colors, k=K, smooth=True):
     lists and float64 distances of all points at once, the (N, k+1, 3) differences whole,
     the density's formula over the whole (N, k+1) matrix (the slow twin)."""
     pts, cols, _ = pc._check_inputs(positions, colors, None, "twin")
-    pts, cols, _, _ = pc._merge_duplicates(pts, cols, None, "twin")
+    pts, cols, _, _ = pc.merge_duplicates(pts, cols, None, "twin")
     dist, idx = cKDTree(pts).query(pts, k + 1)
     assert idx.dtype == np.int64
     normals, centroids = pc.pca_planes(pts, idx)
@@ -145,7 +145,7 @@ def test_the_preparation_peaks_under_800_bytes_a_point(monkeypatch):
 
 
 def unique_rows_twin(pts, cols, nrm):
-    """_merge_duplicates as it was (np.unique of the rows as bytes, with its inverse)."""
+    """merge_duplicates as it was (np.unique of the rows as bytes, with its inverse)."""
     keys = np.ascontiguousarray(pts).view(np.dtype((np.void, 24))).ravel()
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     inverse = inverse.ravel()
@@ -160,7 +160,7 @@ def unique_rows_twin(pts, cols, nrm):
 
 
 def test_merging_duplicates_by_hash_equals_np_unique():
-    """_merge_duplicates (a hash per row, sorted, rows compared within equal hashes: issue
+    """merge_duplicates (a hash per row, sorted, rows compared within equal hashes: issue
     50) against the np.unique of the rows it replaced: many copies of a few rows, -0.0 and
     0.0 apart (different bytes), and a run of equal hashes forced by a bad hash."""
     rng = np.random.default_rng(5)
@@ -170,7 +170,7 @@ def test_merging_duplicates_by_hash_equals_np_unique():
     pts[50:60] = -0.0
     cols = rng.uniform(0.0, 1.0, (20_000, 3)).astype(np.float32)
     nrm = rng.standard_normal((20_000, 3))
-    fast = pc._merge_duplicates(pts, cols, nrm, "test")
+    fast = pc.merge_duplicates(pts, cols, nrm, "test")
     for a, b in zip(fast, unique_rows_twin(pts, cols, nrm)):
         assert np.array_equal(a, b)
     first, duplicates = pc.first_rows(pts)
@@ -181,4 +181,4 @@ def test_merging_duplicates_by_hash_equals_np_unique():
     same = np.zeros(len(pts), np.uint64)
     assert pc._first_of_runs(u, same, np.arange(len(pts)), first_all) == duplicates
     assert np.array_equal(first_all, first)
-    assert pc._merge_duplicates(base, cols[:3000], nrm[:3000], "test")[3] is None
+    assert pc.merge_duplicates(base, cols[:3000], nrm[:3000], "test")[3] is None

@@ -36,6 +36,17 @@ def add_parser(commands) -> None:
     prepare.add_argument("-q", "--quiet", action="store_true",
                          help="no progress bars, no summary line")
     add_input_options(prepare)
+    disk = prepare.add_argument_group(
+        "a cloud larger than memory", "A LAS/LAZ cloud whose preparation would take more "
+        "than half the memory available is streamed into chunks in a work folder and "
+        "prepared from there, a chunk and its halo in memory at a time (docs/outofcore.md); "
+        "the folder is removed when done, and a run interrupted resumes from it.")
+    disk.add_argument("--on-disk", choices=("auto", "on", "off"), default="auto",
+                      help="prepare the cloud from a work folder: by its size (auto), "
+                           "always (on) or never (off) (default: %(default)s)")
+    disk.add_argument("--work-dir", metavar="DIR",
+                      help="where the work folder goes, with about 190 bytes a point free "
+                           "(default: the cache folder's work/)")
     cluster = prepare.add_argument_group(
         "a cluster", "A point cloud of more than a million points is prepared in chunks "
         "(each with a halo of its neighbours, bounded memory); they can run on Dask workers, "
@@ -54,6 +65,7 @@ def run(args) -> int:
     from ..io.model_file import EXTENSION, write_model_file
     from ..lod.cache import cached_hierarchy
     from ..prep.chunks import on_cluster
+    from ..prep.cloudfile import on_disk
 
     source = Path(args.input)
     out = Path(args.output) if args.output else _default_output(source, EXTENSION)
@@ -68,7 +80,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     client, cluster = client_for(args)
     try:
-        with on_cluster(client):
+        with on_cluster(client), on_disk(args.on_disk, args.work_dir):
             model = load(source, cache=prep_cache(args), **loader_options(args))
     finally:
         close(client, cluster)

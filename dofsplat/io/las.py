@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DofsplatError, library_message
+from ..prep.cloudfile import wants_disk
 from ..surfels import Material, Surfels
 
 LAS_EXTENSIONS = (".las", ".laz")
@@ -47,6 +48,9 @@ def read_las(path, *, material: Material | None = None, k: int | None = None,
     path = Path(path)
     if not path.is_file():
         raise DofsplatError(f"no such file: {path}")
+    if wants_disk(las_point_count(path)):
+        surfels = read_las_on_disk(path, k=k, smooth=smooth, normalise=normalise)
+        return surfels if material is None else replace(surfels, material=material)
     positions, colors, scale = read_las_points(path)
     keep = finite_rows(positions, colors, source=str(path))
     if not keep.all():
@@ -107,6 +111,161 @@ def read_las_points(path) -> tuple[np.ndarray, np.ndarray | None, float]:
     return positions, colors, scale
 
 
+def las_point_count(path) -> int:
+    """The number of points a LAS / LAZ file's header gives."""
+    return int(_las_header(Path(path)).point_count)
+
+
+def read_las_on_disk(path, *, k: int | None = None, smooth: bool = True,
+                     normalise: str = "object", progress: bool = True) -> Surfels:
+    """``read_las`` of a cloud larger than memory (issue 50): the points streamed into a
+    work folder (``prep.cloudfile.work_folder``) in chunks and prepared chunk by chunk from
+    there (``prep.pointcloud.cloud_to_surfels``), the same surfels as the in-memory
+    preparation's where each point's neighbourhoods fit in its chunk's halo, in the order
+    of the chunks. Surfels whose arrays are memory maps of the folder's files; the folder
+    is removed once they are complete (the maps keep them), and an interrupted run leaves
+    it for the next to resume from."""
+    from ..prep import cloudfile
+    from ..prep.pointcloud import CHUNK_POINTS
+
+    path = Path(path)
+    stat = path.stat()
+    key = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
+           "chunk_points": CHUNK_POINTS, "smooth": smooth, "k": k, "normalise": normalise}
+    folder = cloudfile.work_folder(key)
+    try:
+        return _prepared_on_disk(path, folder, key, k, smooth, normalise, progress)
+    except OSError as e:  # the work folder's (the input's own are DofsplatErrors)
+        raise DofsplatError(f"{path}: cannot prepare it in the work folder {folder}: "
+                            f"{e.strerror or e}") from e
+
+
+def _prepared_on_disk(path, folder, key, k, smooth, normalise, progress) -> Surfels:
+    import sys
+
+    from tqdm import tqdm
+
+    from ..prep import cloudfile
+    from ..prep.pointcloud import CHUNK_POINTS, cloud_to_surfels
+
+    cloud = cloudfile.open_cloud(folder, key)
+    show = progress and sys.stderr.isatty()
+    if cloud is None:
+        cloudfile.remove(folder)  # another input's, or a run cut short before its chunks
+        n = las_point_count(path)
+        cloudfile.check_space(folder, n, str(path))
+        with tqdm(total=4 * n, desc=f"{path.name}: the cloud into chunks on disk",
+                  unit="pt", unit_scale=True, file=sys.stderr, disable=not show,
+                  leave=False) as bar:
+            blocks, lo, hi = _decoded(path, folder, bar)
+            cloud = cloudfile.write_cloud(folder, blocks, lo, hi, CHUNK_POINTS, key, bar)
+        for name in ("input.f64", "input.rgb"):
+            (folder / name).unlink(missing_ok=True)
+    surfels = cloud_to_surfels(cloud, k=k, smooth=smooth, normalise=normalise,
+                               progress=progress, source=str(path), store=folder)
+    cloudfile.remove(folder)
+    return surfels
+
+
+def _decoded(path: Path, folder: Path, bar):
+    """The file's points decoded once into folder (input.f64, input.rgb): (blocks, lo, hi)
+    for ``cloudfile.write_cloud``: blocks() reads them back ``cloudfile.BLOCK`` points at
+    a time, recentred, turned y-up and their colours linear, as ``read_las`` does with the
+    points in memory; lo, hi (3,) their bounds."""
+    from ..colors import srgb_to_linear
+    from ..prep.cloudfile import BLOCK, read_rows
+    from ..prep.pointcloud import MID_GREY
+
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    top = 0
+    done = 0
+    header = _las_header(path)
+    n = int(header.point_count)
+    has_rgb = {"red", "green", "blue"} <= set(header.point_format.dimension_names)
+    scale = float(np.min(header.scales))
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "input.f64", "wb") as fp, open(folder / "input.rgb", "wb") as fc:
+        for p, rgb in _las_chunks(path, n, has_rgb):
+            if not np.all(np.isfinite(p)):
+                raise DofsplatError(f"{path}: the file holds coordinates that are not "
+                                    "finite numbers")
+            np.minimum(lo, p.min(axis=0), out=lo)
+            np.maximum(hi, p.max(axis=0), out=hi)
+            fp.write(p.tobytes())
+            if rgb is not None:
+                top = max(top, int(rgb.max()))
+                fc.write(rgb.tobytes())
+            done += len(p)
+            bar.update(len(p))
+    if n == 0 or done == 0:
+        raise DofsplatError(f"{path}: the file holds no points")
+    if done < n:
+        raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: the header counts "
+                            f"{n:,} points, the file holds {done:,}")
+    shift = _shift(lo, hi, scale, str(path))
+    scale_rgb = np.float32(255.0 if top <= 255 else 65535.0)
+
+    def blocks():
+        for a in range(0, n, BLOCK):
+            b = min(a + BLOCK, n)
+            p = read_rows(folder / "input.f64", np.float64, a, b)
+            if shift is not None:
+                p += shift
+            p = z_up_to_y_up(p)
+            if has_rgb:
+                rgb = read_rows(folder / "input.rgb", np.uint16, a, b)
+                c = np.clip(srgb_to_linear(rgb.astype(np.float32) / scale_rgb), 0.0, 1.0)
+            else:
+                c = np.full((b - a, 3), MID_GREY, np.float32)
+            yield p, c
+
+    if shift is not None:
+        lo, hi = lo + shift, hi + shift
+    corners = z_up_to_y_up(np.stack([lo, hi]))
+    return blocks, corners.min(axis=0), corners.max(axis=0)
+
+
+def _las_header(path: Path):
+    """The LAS / LAZ file's header (laspy's), or DofsplatError."""
+    import laspy
+
+    try:
+        with laspy.open(str(path)) as reader:
+            return reader.header
+    except PermissionError as e:
+        raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
+    except Exception as e:  # laspy and lazrs raise many types for a damaged file
+        raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: "
+                            f"{library_message(e)}") from e
+
+
+def _las_chunks(path: Path, n: int, has_rgb: bool):
+    """The file's points, ``READ_CHUNK`` at a time: (positions (M, 3) float64, colours
+    (M, 3) uint16 as stored, or None), at most n in all; DofsplatError for a damaged
+    file."""
+    import laspy
+
+    done = 0
+    try:
+        with laspy.open(str(path)) as reader:
+            for points in reader.chunk_iterator(READ_CHUNK):
+                m = min(len(points), n - done)
+                p = np.empty((m, 3), np.float64)
+                for axis, values in enumerate((points.x, points.y, points.z)):
+                    p[:, axis] = np.asarray(values)[:m]
+                rgb = (np.stack([np.asarray(points[c])[:m] for c in ("red", "green", "blue")],
+                                axis=1).astype(np.uint16) if has_rgb else None)
+                done += m
+                yield p, rgb
+    except PermissionError as e:
+        raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
+    except DofsplatError:
+        raise
+    except Exception as e:  # laspy and lazrs raise many types for a damaged file
+        raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: "
+                            f"{library_message(e)}") from e
+
+
 def z_up_to_y_up(positions: np.ndarray) -> np.ndarray:
     """(x, y, z) -> (x, z, -y): LAS's z-up frame turned -90 degrees about x into y-up, in
     place (positions (N, 3) float64, which it returns)."""
@@ -119,14 +278,21 @@ def z_up_to_y_up(positions: np.ndarray) -> np.ndarray:
 def _recentre(positions: np.ndarray, scale: float, source: str) -> np.ndarray:
     """Shift points far from the origin so that float32 keeps the file's precision (in
     place: positions (N, 3) float64, which it returns)."""
-    extent = float(np.max(np.abs(positions)))
+    shift = _shift(positions.min(axis=0), positions.max(axis=0), scale, source)
+    if shift is not None:
+        positions += shift  # (in place: the readers' own array)
+    return positions
+
+
+def _shift(lo: np.ndarray, hi: np.ndarray, scale: float, source: str) -> np.ndarray | None:
+    """The shift (3,) that ``_recentre`` gives points of bounds lo, hi (3,), with its
+    warning, or None where float32 keeps the file's precision as they are."""
+    extent = float(max(np.max(np.abs(lo)), np.max(np.abs(hi))))
     quantum = scale if math.isfinite(scale) and scale > 0 else 1e-3
     if extent * 2.0**-24 <= 0.5 * quantum:
-        return positions
-    lo, hi = positions.min(axis=0), positions.max(axis=0)
+        return None
     shift = -np.round(0.5 * (lo + hi))
     warnings.warn(f"{source}: coordinates reach {extent:,.0f}, beyond float32 precision; "
                   f"shifted by ({', '.join(f'{v:,.0f}' for v in shift)}): camera positions "
-                  "are in these shifted (and y-up) coordinates", stacklevel=3)
-    positions += shift  # (in place: the readers' own array)
-    return positions
+                  "are in these shifted (and y-up) coordinates", stacklevel=4)
+    return shift

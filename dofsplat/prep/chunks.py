@@ -40,8 +40,10 @@ chunks (0.57 % lower there; docs/outofcore.md). ``tests/test_chunks.py`` checks 
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 from ..jit import numba
 import numpy as np
@@ -88,80 +90,178 @@ def each_chunk(fn, shared: tuple, chunk_args):
         future.release()
 
 
-def chunked_surfels(stages, pts: np.ndarray, cols, nrm, vp, *, k: int, smooth: bool,
-                    normalise: str, chunk_points: int, progress: bool, source: str) -> Surfels:
+def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normalise: str,
+                    chunk_points: int, progress: bool, source: str, store=None) -> Surfels:
     """``points_to_surfels`` (which see) of points without duplicates, chunk by chunk (the
     module docstring): Surfels. stages: ``pointcloud.surfel_stages``, each chunk's steps
-    (passed in: ``pointcloud`` calls this module); cols (N, 3) the points' colours. Each
-    chunk is ``surfel_chunk``'s and then ``weight_chunk``'s, functions of the cloud and the
-    chunk alone (the joins run after them), so the result does not depend on the order the
-    chunks are taken in."""
+    (passed in: ``pointcloud`` calls this module); pts (N, 3) float64, or a
+    ``cloudfile.CloudFile`` (the cloud on disk, its chunks its own); cols (N, 3) the points'
+    colours. Each chunk is ``surfel_chunk``'s and then ``weight_chunk``'s, functions of the
+    cloud and the chunk alone (the joins run after them), so the result does not depend on
+    the order the chunks are taken in.
+
+    store: a folder, or None. Given, the arrays over all points are memory maps of files
+    there, written chunk by chunk and unmapped after each (the process's memory then holds
+    a chunk's), and each chunk's other results are kept as it completes, so that a run in
+    the same folder after an interruption takes the chunks done from it."""
+    from .cloudfile import BLOCK, CloudFile, mapped, release
+
     n = len(pts)
-    order, bounds = chunk_order(pts, chunk_points)
-    out_pos = np.empty((n, 3), np.float32)
-    out_nrm = np.empty((n, 3), np.float32)
-    # each point's component, numbered over all chunks
-    label = np.full(n, -1, np.int32 if n < 2 ** 31 else np.int64)
+    if isinstance(pts, CloudFile):
+        bounds = pts.bounds
+        rows = lambda a, b: np.arange(a, b, dtype=np.int64)  # noqa: E731
+    else:
+        order, bounds = chunk_order(pts, chunk_points)
+        rows = lambda a, b: order[a:b]  # noqa: E731
+    kept = _Kept(store)
+    if store is None:
+        new = lambda name, shape, dtype: np.empty(shape, dtype)  # noqa: E731
+    else:
+        new = lambda name, shape, dtype: mapped(store, name, dtype, shape,  # noqa: E731
+                                                fresh=kept.fresh)
+    out_pos = new("positions.f32", (n, 3), np.float32)
+    # the normals as each chunk propagated them, before the orientation's join
+    chunk_nrm = new("chunk_normals.f32", (n, 3), np.float32)
+    # each point's component, numbered over all chunks (-1: none)
+    label = new("label", n, np.int32 if n < 2 ** 31 else np.int64)
+    if kept.fresh:
+        label[:] = -1
     # the radii before the outlier cap, whose median is the whole cloud's: r_area, r_area
     # under the cluster cap, the radius under it (``pointcloud.surfel_radii``)
-    r_area = np.empty(n, np.float64)
-    r_capped = np.empty(n, np.float64)
-    r_radius = np.empty(n, np.float64)
+    r_area = new("r_area.f64", n, np.float64)
+    r_capped = new("r_capped.f64", n, np.float64)
+    r_radius = new("r_radius.f64", n, np.float64)
+    big = (out_pos, chunk_nrm, label, r_area, r_capped, r_radius)
     tallies, fixed, halos, boxes = [], [], [], []
     n_comp = 0
     with _chunk_bar(2 * n if normalise != "none" else n, source, progress) as bar:
-        chunk_args = ((order[a:b], k, smooth) for a, b in bounds)
-        for (a, b), c in zip(bounds, each_chunk(surfel_chunk, (stages, pts, nrm, vp),
-                                                chunk_args)):
-            own = order[a:b]
+        todo = [i for i in range(len(bounds)) if not kept.has("surfels", i)]
+        computed = each_chunk(surfel_chunk, (stages, pts, nrm, vp),
+                              ((rows(*bounds[i]), k, smooth) for i in todo))
+        for i, (a, b) in enumerate(bounds):
+            own = rows(a, b)
+            c = kept.read("surfels", i)
+            if c is None:
+                c = next(computed)
+                out_pos[own], chunk_nrm[own] = c["positions"], c["normals"]
+                r_area[own], r_capped[own] = c["r_area"], c["r_capped"]
+                r_radius[own] = c["radius"]
+                if c["label"] is not None:
+                    label[own] = c["label"] + n_comp
+                release(*big)
+                kept.write("surfels", i, {key: v for key, v in c.items() if key not in
+                                          ("positions", "normals", "r_area", "r_capped",
+                                           "radius", "label")} | {"labelled": c["label"]
+                                                                  is not None})
             boxes.append(c["box"])
-            out_pos[own], out_nrm[own] = c["positions"], c["normals"]
-            r_area[own], r_capped[own], r_radius[own] = c["r_area"], c["r_capped"], c["radius"]
-            if c["label"] is not None:
-                label[own] = c["label"] + n_comp
+            if c["labelled"] if "labelled" in c else c["label"] is not None:
                 tallies.append(c["tally"])
                 fixed.append(c["fixed"])
                 halos.append((c["halo_rows"], c["halo_label"] + n_comp, c["halo_normals"]))
                 n_comp += len(c["fixed"])
             del c
             bar.update(b - a)
+        computed.close()  # (the cluster lets go of what it was sent for these)
+        # (into arrays of their own where kept, so that a run resumed repeats these steps)
+        out_nrm = chunk_nrm if store is None else new("normals.f32", (n, 3), np.float32)
+        flip = np.zeros(1, bool)
         if tallies:
             # how each chunk's components agree with the others' at the points they share
-            shared = [agreements(comp, label[rows], nm, out_nrm[rows])
-                      for rows, comp, nm in halos]
+            shared = [agreements(comp, label[rows_], nm, chunk_nrm[rows_])
+                      for rows_, comp, nm in halos]
             del halos
             flip = join_orientation([np.concatenate([t[i] for t in tallies]) for i in range(4)],
                                     np.concatenate(fixed), shared)
-            out_nrm[flip[label]] *= -1.0
-        del label
+        for s in range(0, n, BLOCK):
+            part = np.array(chunk_nrm[s:s + BLOCK])
+            lab = label[s:s + BLOCK]
+            part[flip[lab] & (lab >= 0)] *= -1.0
+            out_nrm[s:s + BLOCK] = part
+        release(out_nrm, chunk_nrm, label)
+        del label, chunk_nrm
         # the outlier cap, as ``surfel_radii`` takes it: min(radius, cap) is its radius
         # under min(cluster cap, cap), and the area's the same (the minima commute)
         cap = outlier_cap(r_area)
         del r_area
-        np.minimum(r_radius, cap, out=r_radius)
-        np.minimum(r_capped, cap, out=r_capped)
-        out_rad = r_radius.astype(np.float32)
-        out_w = ((r_capped / r_radius) ** 2).astype(np.float32)
+        out_rad = new("radius.f32", n, np.float32)
+        out_w = new("area_weight.f32", n, np.float32)
+        for s in range(0, n, BLOCK):
+            radius = np.minimum(r_radius[s:s + BLOCK], cap)
+            out_rad[s:s + BLOCK] = radius
+            out_w[s:s + BLOCK] = (np.minimum(r_capped[s:s + BLOCK], cap) / radius) ** 2
+        release(out_rad, out_w)
         del r_radius, r_capped
         surfels = Surfels(positions=out_pos, normals=out_nrm, radius=out_rad, colors=cols,
                           weight=out_w)
         del out_pos, out_nrm, out_rad, out_w
         if normalise == "none":
             return surfels
-        weight = np.empty(n, np.float32)
+        raw_weight = new("raw_weight.f32", n, np.float32)
         levels = []
         reads = set(np.linspace(0, len(bounds) - 1, min(LEVEL_CHUNKS, len(bounds)))
                     .round().astype(int).tolist())
-        chunk_args = ((order[a:b], boxes[i], normalise, i in reads)
-                      for i, (a, b) in enumerate(bounds))
-        for (a, b), (w, level) in zip(bounds, each_chunk(weight_chunk, (surfels, pts),
-                                                         chunk_args)):
-            weight[order[a:b]] = w
-            if level is not None:
-                levels.append((level, b - a))
+        todo = [i for i in range(len(bounds)) if not kept.has("weights", i)]
+        computed = each_chunk(weight_chunk, (surfels, pts),
+                              ((rows(*bounds[i]), boxes[i], normalise, i in reads)
+                               for i in todo))
+        for i, (a, b) in enumerate(bounds):
+            c = kept.read("weights", i)
+            if c is None:
+                w, level = next(computed)
+                raw_weight[rows(a, b)] = w
+                release(raw_weight)
+                c = {"level": np.nan if level is None else level}
+                kept.write("weights", i, c)
+            if i in reads:
+                levels.append((float(c["level"]), b - a))
             bar.update(b - a)
+        computed.close()
     level = sum(v * m for v, m in levels) / sum(m for _, m in levels)
-    return replace(surfels, weight=(weight / level).astype(np.float32))
+    weight = raw_weight if store is None else new("weight.f32", n, np.float32)
+    for s in range(0, n, BLOCK):
+        weight[s:s + BLOCK] = (raw_weight[s:s + BLOCK] / level).astype(np.float32)
+    release(weight, raw_weight)
+    return replace(surfels, weight=weight)
+
+
+class _Kept:
+    """Each chunk's results other than its points' arrays, kept in a folder as the chunk
+    completes (``chunked_surfels``' store; None: nothing is kept): ``has``, ``read`` (a dict,
+    or None where not kept) and ``write`` (under a temporary name, renamed when written)."""
+
+    def __init__(self, store):
+        self.store = None if store is None else Path(store)
+        self.fresh = self.store is None or not any(self.store.glob("surfels-*.npz"))
+
+    def _path(self, step: str, i: int) -> Path:
+        return self.store / f"{step}-{i}.npz"
+
+    def has(self, step: str, i: int) -> bool:
+        return self.store is not None and self._path(step, i).exists()
+
+    def read(self, step: str, i: int):
+        if not self.has(step, i):
+            return None
+        with np.load(self._path(step, i)) as z:
+            c = {key: z[key] for key in z.files}
+        if "box_lo" in c:
+            c["box"] = (c.pop("box_lo"), c.pop("box_hi"))
+        if "tally_0" in c:
+            c["tally"] = tuple(c.pop(f"tally_{j}") for j in range(4))
+        return c
+
+    def write(self, step: str, i: int, c: dict) -> None:
+        if self.store is None:
+            return
+        arrays = {key: v for key, v in c.items() if key not in ("box", "tally")}
+        if "box" in c:
+            arrays["box_lo"], arrays["box_hi"] = c["box"]
+        if c.get("tally") is not None:
+            arrays.update({f"tally_{j}": t for j, t in enumerate(c["tally"])})
+        part = self._path(step, i).with_suffix(".part")
+        with open(part, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(part, self._path(step, i))
 
 
 def surfel_chunk(stages, pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) -> dict:
@@ -247,7 +347,10 @@ def halo_box(pts: np.ndarray, own: np.ndarray, k: int):
 
 def rows_in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The sorted rows of the points within the box [lo, hi]: a chunk's own and its halo
-    (``halo_box``)."""
+    (``halo_box``). pts: (N, 3) float64, or a ``cloudfile.CloudFile``, which reads the
+    chunks that meet the box."""
+    if not isinstance(pts, np.ndarray):
+        return pts.rows_in_box(lo, hi)
     inside = np.empty(len(pts), np.bool_)
     _in_box(pts, lo, hi, inside)
     return np.flatnonzero(inside)

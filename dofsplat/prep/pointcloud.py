@@ -132,7 +132,7 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
             raise DofsplatError(f"viewpoint must be three finite numbers, or one such row per "
                                 f"point, got an array of shape {vp.shape}" if vp.ndim else
                                 f"viewpoint must be three finite numbers, got {viewpoint!r}")
-    pts, cols, nrm, kept = _merge_duplicates(pts, cols, nrm, source)
+    pts, cols, nrm, kept = merge_duplicates(pts, cols, nrm, source)
     if vp is not None and vp.ndim == 2 and kept is not None:
         vp = vp[kept]
     n = len(pts)
@@ -165,6 +165,27 @@ def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = N
             surfels = normalise_surfels(surfels, normalise, progress=False)
             bar.update()
     return surfels
+
+
+def cloud_to_surfels(cloud, *, k: int | None = None, smooth: bool = True,
+                     normalise: str = "object", progress: bool = True, source: str = "points",
+                     store=None) -> Surfels:
+    """``points_to_surfels`` of a cloud on disk (a ``cloudfile.CloudFile``, its duplicates
+    merged and its points in chunks: ``cloudfile.write_cloud``), chunk by chunk in its own
+    chunks, without given normals or a viewpoint: Surfels in the cloud's order, whose arrays
+    are memory maps of files in store (a folder; None: in memory), where each chunk's
+    results are kept as it completes (``chunks.chunked_surfels``)."""
+    from .chunks import chunked_surfels
+    from .normalise import check_method
+
+    check_method(normalise)
+    n = len(cloud)
+    if n < 3:
+        raise DofsplatError(f"{source}: need at least 3 distinct points to estimate normals "
+                            f"and radii, got {n}")
+    return chunked_surfels(surfel_stages, cloud, cloud.colours(), None, None,
+                           k=_check_k(k, n), smooth=smooth, normalise=normalise,
+                           chunk_points=n, progress=progress, source=source, store=store)
 
 
 def surfel_stages(pts: np.ndarray, nrm, vp, k: int, smooth: bool, bar=None, *,
@@ -918,7 +939,7 @@ def _first_of_runs(u, h, perm, first):
     return duplicates
 
 
-def _merge_duplicates(pts, cols, nrm, source):
+def merge_duplicates(pts, cols, nrm, source):
     """Merge points at exactly the same position: first normal, mean colour. Returns the
     points, colours, normals and the input rows kept (None when none were merged), in the
     input order of the first of each position."""
