@@ -7,6 +7,8 @@
     python bench/prep_memory.py /tmp/synth4m.laz --check /tmp/whole.npz     # chunks vs whole
     python bench/prep_memory.py /tmp/synth20m.laz --render "--size 1920x1080 --aperture 5"
     python bench/prep_memory.py /tmp/synth20m.laz --render "..." --cache   # twice: the later one
+    python bench/prep_memory.py /tmp/synth20m.laz --prepare --on-disk on   # the cloud on disk
+    python bench/prep_memory.py /tmp/synth4m.laz --on-disk on --sort --check /tmp/sorted.npz
 
 The file is loaded with ``dofsplat.io.load(path, cache="off")`` (the preparation of
 ``prep.pointcloud.points_to_surfels``). ``--save`` writes the surfel arrays (positions,
@@ -22,9 +24,13 @@ past ``prep.pointcloud.CHUNK_POINTS`` points), the LOD tree and the frame, each 
 as the process's own memory (RssAnon: without the pages of the files it maps, which for a
 model kept as a .dofsplat file are the page cache's, mapped around each page a frame reads).
 ``--cache`` renders through the caches instead: run twice, the second is a later render
-(a model of 2^21 surfels or more then opens as its .dofsplat file in the cache). ``--chunk-points
-N`` sets that threshold (1e12: the whole cloud at once), so that ``--save`` of one and
-``--check`` of the other count the rows in which chunks and the whole cloud differ.
+(a model of 2^21 surfels or more then opens as its .dofsplat file in the cache). ``--prepare``
+runs ``dofsplat prepare PATH --no-cache`` instead of the render (its stages and the file's
+write). ``--chunk-points N`` sets that threshold (1e12: the whole cloud at once), so that
+``--save`` of one and ``--check`` of the other count the rows in which chunks and the whole
+cloud differ. ``--on-disk on`` prepares a LAS/LAZ cloud from a work folder
+(``prep.cloudfile``; "off" in memory, "auto" by its size), whose surfels come in the order
+of its chunks: ``--sort`` orders the rows by position before ``--save`` or ``--check``.
 """
 
 from __future__ import annotations
@@ -134,13 +140,21 @@ def wrap_render_stages(sampler: StageSampler):
     out, so that the script measures it too (PYTHONPATH=that checkout)."""
     wrap(sampler, "dofsplat.io.las", "read_las_points", "read the file (LAS/LAZ)")
     wrap(sampler, "dofsplat.prep.pointcloud", "_merge_duplicates", "merge duplicates")
+    wrap(sampler, "dofsplat.prep.pointcloud", "merge_duplicates", "merge duplicates")
     wrap(sampler, "dofsplat.prep.pointcloud", "points_to_surfels", "surfels")
+    # the cloud on disk (``--on-disk on``): the file decoded into the work folder, its
+    # chunks written (their duplicates merged within), the surfels from them
+    wrap(sampler, "dofsplat.io.las", "_decoded", "read the file into the work folder")
+    wrap(sampler, "dofsplat.prep.cloudfile", "write_cloud", "the cloud into chunks")
+    wrap(sampler, "dofsplat.prep.pointcloud", "cloud_to_surfels", "surfels")
     # (the normalisation's level renders the model: a tree built within "surfels" is its)
     wrap(sampler, "dofsplat.lod", "build_hierarchy", "LOD tree")
     wrap(sampler, "dofsplat.lod.cache", "build_hierarchy", "LOD tree")
+    wrap(sampler, "dofsplat.io.model_file", "write_model_file", "write the model file")
 
 
-def render_stages(path: str, args: str, cache: bool = False) -> None:
+def render_stages(path: str, args: str, cache: bool = False, prepare: bool = False,
+                  disk: str = "auto") -> None:
     import shlex
     import tempfile
 
@@ -149,11 +163,17 @@ def render_stages(path: str, args: str, cache: bool = False) -> None:
     sampler = StageSampler()
     wrap_render_stages(sampler)
     no_cache = [] if cache else ["--no-cache", "--lod-cache", "off"]
-    with tempfile.TemporaryDirectory() as tmp, sampler:
+    with tempfile.TemporaryDirectory() as tmp, sampler, _on_disk(disk):
         t0 = time.perf_counter()
-        rc = cli(["render", path, "-o", f"{tmp}/frame.png", *no_cache, *shlex.split(args)])
+        if prepare:
+            rc = cli(["prepare", path, "-o", f"{tmp}/model.dofsplat", "--no-cache",
+                      "--on-disk", disk, *shlex.split(args)])
+        else:
+            rc = cli(["render", path, "-o", f"{tmp}/frame.png", *no_cache,
+                      *shlex.split(args)])
         seconds = time.perf_counter() - t0
-    what = "render through the cache" if cache else "first render"
+    what = ("prepare" if prepare else "render through the cache" if cache
+            else "first render")
     print(f"{path}: {what} in {seconds:.1f} s (exit {rc}); peak RSS by stage, and of it the "
           "process's own memory (RssAnon: RSS less the mapped files' pages; after X: the time "
           "after it, up to the next)")
@@ -179,9 +199,17 @@ def main():
     parser.add_argument("--cache", action="store_true",
                         help="with --render: through the caches (a model file's render, or "
                              "run twice: the first keeps the model, the second reads it)")
+    parser.add_argument("--prepare", action="store_true",
+                        help="the stages of dofsplat prepare PATH --no-cache (with --render "
+                             "ARGS: its options)")
+    parser.add_argument("--on-disk", choices=("auto", "on", "off"), default="auto",
+                        help="a LAS/LAZ cloud prepared from a work folder (prep.cloudfile)")
+    parser.add_argument("--sort", action="store_true",
+                        help="order the surfels by position before --save / --check")
     args = parser.parse_args()
-    if args.render is not None:
-        return render_stages(args.path, args.render, cache=args.cache)
+    if args.render is not None or args.prepare:
+        return render_stages(args.path, args.render or "", cache=args.cache,
+                             prepare=args.prepare, disk=args.on_disk)
 
     from dofsplat.io import load
     from dofsplat.prep import pointcloud
@@ -192,10 +220,11 @@ def main():
     if args.stages:
         sampler = StageSampler()
         wrap_stages(sampler)
-        with sampler:
+        with sampler, _on_disk(args.on_disk):
             surfels = load(args.path, cache="off")
     else:
-        surfels = load(args.path, cache="off")
+        with _on_disk(args.on_disk):
+            surfels = load(args.path, cache="off")
     seconds = time.perf_counter() - t0
     n = len(surfels)
     print(f"{args.path}: {n:,} surfels in {seconds:.1f} s")
@@ -203,6 +232,9 @@ def main():
         for label, peak in sampler.peaks.items():
             print(f"  {label:28s} {peak / 1e9:6.2f} GB  {peak / n:7.0f} B/point")
     arrays = {name: getattr(surfels, name) for name in FIELDS}
+    if args.sort:
+        order = np.lexsort(np.asarray(surfels.positions).T[::-1])
+        arrays = {name: np.asarray(a)[order] for name, a in arrays.items()}
     if args.save:
         np.savez(args.save, **arrays)
         print(f"saved {args.save}")
@@ -212,6 +244,15 @@ def main():
         print("identical" if not bad else "DIFFERENT: " + ", ".join(
             f"{name} in {_rows_differing(ref[name], arrays[name]):,} rows" for name in bad))
         raise SystemExit(1 if bad else 0)
+
+
+def _on_disk(mode: str):
+    """prep.cloudfile.on_disk(mode), where this checkout has it."""
+    try:
+        from dofsplat.prep.cloudfile import on_disk
+    except ImportError:
+        return contextlib.nullcontext()
+    return on_disk(mode)
 
 
 def _rows_differing(a: np.ndarray, b: np.ndarray) -> int:

@@ -271,3 +271,21 @@ def test_a_damaged_las_file_on_disk_is_one_line(tmp_path):
     with cloudfile.on_disk("on", tmp_path / "w"), pytest.raises(DofsplatError,
                                                                    match="truncated"):
         read_las(tmp_path / "cut.las")
+
+
+def test_prepare_on_disk_on_local_workers_writes_the_same_file(tmp_path, monkeypatch):
+    """`dofsplat prepare --on-disk on --workers 2`: the chunks' steps on two worker
+    processes, which read the cloud and the surfels from the work folder's files: the same
+    .dofsplat file, byte for byte, as in this process."""
+    pytest.importorskip("dask.distributed")
+    from dofsplat.cli import main
+
+    pts, colors = terrain(20_000, seed=10)
+    write_las(tmp_path / "scan.las", pts, colors)
+    monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    for name, extra in (("here", []), ("workers", ["--workers", "2"])):
+        assert main(["prepare", str(tmp_path / "scan.las"), "-o",
+                     str(tmp_path / f"{name}.dofsplat"), "-q", "--no-cache", "--on-disk", "on",
+                     "--work-dir", str(tmp_path / "w"), *extra]) == 0
+    assert (tmp_path / "here.dofsplat").read_bytes() == \
+        (tmp_path / "workers.dofsplat").read_bytes()

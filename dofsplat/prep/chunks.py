@@ -82,7 +82,7 @@ def each_chunk(fn, shared: tuple, chunk_args):
             yield fn(*shared, *args)
         return
     remote = [_CLIENT.scatter(x, broadcast=True) if isinstance(x, (np.ndarray, Surfels))
-              else x for x in shared]
+              else x for x in shared]  # (a CloudFile or SurfelFiles goes as its paths)
     futures = [_CLIENT.submit(fn, *remote, *args, pure=False) for args in chunk_args]
     for i, future in enumerate(futures):
         yield future.result()
@@ -104,7 +104,7 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
     there, written chunk by chunk and unmapped after each (the process's memory then holds
     a chunk's), and each chunk's other results are kept as it completes, so that a run in
     the same folder after an interruption takes the chunks done from it."""
-    from .cloudfile import BLOCK, CloudFile, mapped, release
+    from .cloudfile import BLOCK, CloudFile, SurfelFiles, mapped, release
 
     n = len(pts)
     if isinstance(pts, CloudFile):
@@ -201,7 +201,17 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
         reads = set(np.linspace(0, len(bounds) - 1, min(LEVEL_CHUNKS, len(bounds)))
                     .round().astype(int).tolist())
         todo = [i for i in range(len(bounds)) if not kept.has("weights", i)]
-        computed = each_chunk(weight_chunk, (surfels, pts),
+        target = surfels
+        if store is not None and _CLIENT is not None and isinstance(cols, np.memmap):
+            # the workers read the surfels from the files (on this file system) rather than
+            # being sent them whole
+            target = SurfelFiles({"positions": Path(store) / "positions.f32",
+                                  "normals": Path(store) / "normals.f32",
+                                  "radius": Path(store) / "radius.f32",
+                                  "colors": cols.filename,
+                                  "weight": Path(store) / "area_weight.f32"}, n,
+                                 surfels.material)
+        computed = each_chunk(weight_chunk, (target, pts),
                               ((rows(*bounds[i]), boxes[i], normalise, i in reads)
                                for i in todo))
         for i, (a, b) in enumerate(bounds):
@@ -293,7 +303,8 @@ def surfel_chunk(stages, pts, nrm, vp, own: np.ndarray, k: int, smooth: bool) ->
 def weight_chunk(surfels: Surfels, pts, own: np.ndarray, box, method: str, level: bool):
     """One chunk's normalisation weights (``normalise.normalise`` by method, uncalibrated)
     with its halo (box: ``surfel_chunk``'s, the same rows): (its points' weights, and
-    ``rendered_level`` of them where level, else None)."""
+    ``rendered_level`` of them where level, else None). surfels: Surfels, or a
+    ``cloudfile.SurfelFiles`` (on a worker, the cloud on disk)."""
     from .normalise import normalise as normalise_surfels, rendered_level
 
     ids = rows_in_box(pts, *box)

@@ -346,6 +346,28 @@ def plan(counts: np.ndarray, cell: float, chunk_points: int) -> tuple[np.ndarray
     return chunk.ravel(), np.asarray(sizes, np.int64)
 
 
+class SurfelFiles:
+    """Surfels whose arrays are files (float32: positions and normals (N, 3), radius (N,),
+    colors (N, 3), weight (N,); given as {name: path}), for a chunk's steps on a Dask
+    worker: ``subset`` reads the rows it takes. It pickles as the paths (a worker on the
+    same file system reads the files), where Surfels of memory maps pickle their arrays
+    whole."""
+
+    def __init__(self, paths: dict, n: int, material):
+        self.paths, self.n, self.material = {k: str(v) for k, v in paths.items()}, n, material
+
+    def subset(self, rows: np.ndarray):
+        """The surfels of the sorted rows: Surfels."""
+        from ..surfels import Surfels
+
+        arrays = {}
+        for name, path in self.paths.items():
+            width = 3 if name in ("positions", "normals", "colors") else 1
+            shape = (self.n, 3) if width == 3 else (self.n,)
+            arrays[name] = np.array(np.memmap(path, np.float32, "r", shape=shape)[rows])
+        return Surfels(material=self.material, **arrays)
+
+
 def mapped(folder: Path, name: str, dtype, shape, fresh: bool) -> np.ndarray:
     """A writable memory map of folder/name, (shape) dtype: a new file of zeros where fresh,
     else the file as it is (a preparation resumed)."""
