@@ -103,13 +103,40 @@ def cached_files(kind: str | None = None) -> list[Path]:
 
 
 def cache_info() -> dict:
-    """{kind: (files, bytes)} and "total": (files, bytes), for ``dofsplat cache --info``."""
+    """{kind: (files, bytes)} and "total": (files, bytes), for ``dofsplat cache --info``;
+    and "work": (folders, bytes), the work folders (``work_folders``), outside the cap."""
     info = {}
     for kind in KINDS:
         files = cached_files(kind)
         info[kind] = (len(files), sum(_size(p) for p in files))
     info["total"] = (sum(n for n, _ in info.values()), sum(b for _, b in info.values()))
+    folders = work_folders()
+    info["work"] = (len(folders), sum(_size(p) for f in folders for p in f.rglob("*")))
     return info
+
+
+def work_folders() -> list[Path]:
+    """The folders in which clouds larger than memory are prepared (``prep.cloudfile``):
+    each is removed when its preparation completes, so those here were interrupted, and a
+    run of the same input resumes from its folder."""
+    root = cache_root() / "work"
+    try:
+        return sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+    except OSError as e:
+        raise DofsplatError(f"cannot read the cache folder {root}: {e.strerror or e}") from None
+
+
+def clear_work() -> tuple[int, int]:
+    """Remove the work folders (``work_folders``): (folders, bytes) removed."""
+    import shutil
+
+    n = b = 0
+    for folder in work_folders():
+        size = sum(_size(p) for p in folder.rglob("*"))
+        shutil.rmtree(folder, ignore_errors=True)
+        if not folder.exists():
+            n, b = n + 1, b + size
+    return n, b
 
 
 def clear_cache(kind: str | None = None) -> tuple[int, int]:
@@ -168,7 +195,7 @@ def format_bytes(n: int) -> str:
 
 def _size(p: Path) -> int:
     try:
-        return p.stat().st_size
+        return p.stat().st_size if p.is_file() else 0
     except FileNotFoundError:
         return 0
 

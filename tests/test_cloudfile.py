@@ -289,3 +289,45 @@ def test_prepare_on_disk_on_local_workers_writes_the_same_file(tmp_path, monkeyp
                      "--work-dir", str(tmp_path / "w"), *extra]) == 0
     assert (tmp_path / "here.dofsplat").read_bytes() == \
         (tmp_path / "workers.dofsplat").read_bytes()
+
+
+def test_an_interrupted_las_preparation_resumes_and_the_cache_command_shows_it(
+        tmp_path, monkeypatch, capsys):
+    """A LAS file's preparation on disk stopped in its chunks leaves its work folder in the
+    cache folder: `dofsplat cache` shows it, a second run resumes from it (the uninterrupted
+    run's surfels) and removes it; `dofsplat cache --clear work` removes one too."""
+    from dofsplat.cli import main
+    from dofsplat.io.las import read_las
+
+    pts, colors = terrain(20_000, seed=11)
+    write_las(tmp_path / "scan.las", pts, colors)
+    monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    work = tmp_path / "cache" / "work"
+    original = chunks.surfel_chunk
+
+    def stopping(*args):
+        raise KeyboardInterrupt
+
+    with pytest.warns(UserWarning, match="shifted"), cloudfile.on_disk("on"):
+        straight = read_las(tmp_path / "scan.las")
+        monkeypatch.setattr(chunks, "surfel_chunk", lambda *a: (
+            stopping() if len(list(work.glob("*/surfels-*.npz"))) == 2 else original(*a)))
+        with pytest.raises(KeyboardInterrupt):
+            read_las(tmp_path / "scan.las")
+        assert len(list(work.glob("*/surfels-*.npz"))) == 2
+        assert main(["cache"]) == 0
+        assert "work/" in capsys.readouterr().out
+        monkeypatch.setattr(chunks, "surfel_chunk", original)
+        resumed = read_las(tmp_path / "scan.las")
+    for name in ("positions", "normals", "radius", "weight", "colors"):
+        assert np.array_equal(getattr(resumed, name), getattr(straight, name)), name
+    assert list(work.iterdir()) == []
+    monkeypatch.setattr(chunks, "surfel_chunk", stopping)
+    with pytest.warns(UserWarning, match="shifted"), cloudfile.on_disk("on"), \
+            pytest.raises(KeyboardInterrupt):
+        read_las(tmp_path / "scan.las")
+    assert len(list(work.iterdir())) == 1
+    assert main(["cache", "--clear", "work"]) == 0
+    assert "removed 1 work folder" in capsys.readouterr().out
+    assert list(work.iterdir()) == []

@@ -19,8 +19,10 @@ def add_parser(commands) -> None:
                "  dofsplat cache --clear lod")
     cache.add_argument("--info", action="store_true",
                        help="show the folder, the files and their size (the default)")
-    cache.add_argument("--clear", nargs="?", const="all", choices=("all", "surfels", "lod"),
-                       help="delete the cached files: all (the default), or one kind")
+    cache.add_argument("--clear", nargs="?", const="all",
+                       choices=("all", "surfels", "lod", "work"),
+                       help="delete the cached files: all (the default), or one kind; work: "
+                            "the work folders of interrupted preparations on disk")
     cache.set_defaults(run=run)
 
 
@@ -30,9 +32,15 @@ def run(args) -> int:
 
     root = cache.cache_root()
     if args.clear is not None:
-        kind = None if args.clear == "all" else args.clear
-        n, size = cache.clear_cache(kind)
-        print(f"removed {n:,} file{'s' * (n != 1)} ({cache.format_bytes(size)}) from {root}")
+        if args.clear in ("all", "work"):
+            n, size = cache.clear_work()
+            if n or args.clear == "work":
+                print(f"removed {n:,} work folder{'s' * (n != 1)} "
+                      f"({cache.format_bytes(size)}) from {root / 'work'}")
+        if args.clear != "work":
+            kind = None if args.clear == "all" else args.clear
+            n, size = cache.clear_cache(kind)
+            print(f"removed {n:,} file{'s' * (n != 1)} ({cache.format_bytes(size)}) from {root}")
         return EXIT_OK
     info = cache.cache_info()
     limit = cache.max_bytes()
@@ -44,5 +52,11 @@ def run(args) -> int:
     cap = "off (DOFSPLAT_CACHE_MAX=0)" if limit == 0 else cache.format_bytes(limit)
     print(f"  total: {cache.format_bytes(size)} of at most {cap}; least recently used files "
           "go first (DOFSPLAT_CACHE_MAX sets the cap, DOFSPLAT_CACHE_DIR the folder)")
-    print("  'dofsplat cache --clear' empties it (or --clear surfels, --clear lod)")
+    n, size = info["work"]
+    if n:
+        print(f"  {'work/':10s}interrupted preparations of clouds on disk, which a run of the "
+              f"same input resumes: {n:,} folder{'s' * (n != 1)}, {cache.format_bytes(size)} "
+              "(outside the cap)")
+    print("  'dofsplat cache --clear' empties it (or --clear surfels, --clear lod, "
+          "--clear work)")
     return EXIT_OK
