@@ -45,10 +45,10 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from ..jit import numba
 import numpy as np
 
 from ..surfels import Surfels
+from .cloudfile import BLOCK, CloudFile, SurfelFiles, array_rows_in_box, mapped, release
 from .rules import TIE_FRACTION, outlier_cap, sheet_votes
 
 HALO_SPACINGS = 8.0  # a chunk's halo reaches this x its median distance to the k-th neighbour
@@ -104,8 +104,6 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
     there, written chunk by chunk and unmapped after each (the process's memory then holds
     a chunk's), and each chunk's other results are kept as it completes, so that a run in
     the same folder after an interruption takes the chunks done from it."""
-    from .cloudfile import BLOCK, CloudFile, SurfelFiles, mapped, release
-
     n = len(pts)
     if isinstance(pts, CloudFile):
         bounds = pts.bounds
@@ -356,23 +354,13 @@ def halo_box(pts: np.ndarray, own: np.ndarray, k: int):
     return lo - margin, hi + margin
 
 
-def rows_in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def rows_in_box(pts, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """The sorted rows of the points within the box [lo, hi]: a chunk's own and its halo
     (``halo_box``). pts: (N, 3) float64, or a ``cloudfile.CloudFile``, which reads the
     chunks that meet the box."""
-    if not isinstance(pts, np.ndarray):
+    if isinstance(pts, CloudFile):
         return pts.rows_in_box(lo, hi)
-    inside = np.empty(len(pts), np.bool_)
-    _in_box(pts, lo, hi, inside)
-    return np.flatnonzero(inside)
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _in_box(pts, lo, hi, out):
-    """out[i] = whether point i lies in the box [lo, hi] (each axis, closed)."""
-    for i in numba.prange(pts.shape[0]):
-        out[i] = (lo[0] <= pts[i, 0] <= hi[0] and lo[1] <= pts[i, 1] <= hi[1]
-                  and lo[2] <= pts[i, 2] <= hi[2])
+    return array_rows_in_box(pts, lo, hi)
 
 
 def agreements(mine: np.ndarray, theirs: np.ndarray, normals: np.ndarray,

@@ -18,7 +18,7 @@ PotreeConverter 2.0's counting and distribution:
    ``MIN_SHARE`` of it, stays one chunk);
 3. **distribute**: each point written to its chunk's run of the file (the chunks' counts
    give their offsets), in the input's order within the chunk; then each chunk's exact
-   duplicates merged (``pointcloud.merge_duplicates``: the first point, the mean colour), as
+   duplicates merged (``duplicates.merge_duplicates``: the first point, the mean colour), as
    the in-memory preparation merges them. Points at the same position share a cell, so a
    chunk holds all of them.
 
@@ -45,6 +45,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DofsplatError
+from ..jit import numba
+from .duplicates import merge_duplicates
 
 GRID_CELLS = 1 << 22  # the counting grid's cells at most (an int64 each: 32 MB)
 BLOCK = 1 << 20  # points a pass reads and writes at a time
@@ -163,14 +165,12 @@ class CloudFile:
     def rows_in_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """The sorted rows of the points within the box [lo, hi] (``chunks.rows_in_box``):
         only the chunks whose boxes meet it are read."""
-        from .chunks import rows_in_box
-
         found = []
         meets = np.all((self.lo <= hi) & (self.hi >= lo), axis=1)
         for c in np.flatnonzero(meets):
             a, b = int(self.offsets[c]), int(self.offsets[c + 1])
-            found.append(a + rows_in_box(read_rows(self.folder / POINTS, np.float64, a, b),
-                                         lo, hi))
+            found.append(a + array_rows_in_box(read_rows(self.folder / POINTS, np.float64, a,
+                                                         b), lo, hi))
         return np.concatenate(found) if found else np.zeros(0, np.int64)
 
     def _rows(self, name: str, dtype, rows: np.ndarray) -> np.ndarray:
@@ -223,8 +223,6 @@ def write_cloud(folder, blocks, lo, hi, chunk_points: int, key: dict, bar=None) 
     lo, hi (3,): the cloud's bounds. key: the input and options, kept in the table (a later
     ``open_cloud`` with another key does not take it). bar: a tqdm bar that each pass
     advances by its points."""
-    from .pointcloud import merge_duplicates
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
@@ -390,6 +388,21 @@ def release(*arrays) -> None:
         m.flush()
         if hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
             m.madvise(mmap.MADV_DONTNEED)
+
+
+def array_rows_in_box(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The sorted rows of the points (N, 3) float64 within the box [lo, hi]."""
+    inside = np.empty(len(pts), np.bool_)
+    _in_box(pts, lo, hi, inside)
+    return np.flatnonzero(inside)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _in_box(pts, lo, hi, out):
+    """out[i] = whether point i lies in the box [lo, hi] (each axis, closed)."""
+    for i in numba.prange(pts.shape[0]):
+        out[i] = (lo[0] <= pts[i, 0] <= hi[0] and lo[1] <= pts[i, 1] <= hi[1]
+                  and lo[2] <= pts[i, 2] <= hi[2])
 
 
 def remove(folder: Path) -> None:
