@@ -331,3 +331,21 @@ def test_an_interrupted_las_preparation_resumes_and_the_cache_command_shows_it(
     assert main(["cache", "--clear", "work"]) == 0
     assert "removed 1 work folder" in capsys.readouterr().out
     assert list(work.iterdir()) == []
+
+
+def test_a_damaged_kept_chunk_is_done_again_and_a_cut_cloud_file_starts_clean(tmp_path):
+    """After a crash, a chunk's kept file may be empty or cut short (renamed before its data
+    reached the disk): that chunk is done again, the result the same. A cloud file shorter
+    than its table says is not taken (``open_cloud``), so the input is read again."""
+    pts, colors = terrain(20_000, seed=12)
+    cloud = written(tmp_path, pts, colors, 5_000)
+    options = dict(k=K, normalise="none", progress=False, store=tmp_path)
+    first = pc.cloud_to_surfels(cloud, **options)
+    (tmp_path / "surfels-1.npz").write_bytes(b"PK\x03\x04 cut")
+    again = pc.cloud_to_surfels(cloud, **options)
+    for name in ("positions", "normals", "radius", "weight"):
+        assert np.array_equal(getattr(again, name), getattr(first, name)), name
+    assert cloudfile.open_cloud(tmp_path, {"test": 1}) is not None
+    with open(tmp_path / cloudfile.POINTS, "r+b") as f:
+        f.truncate(1000)
+    assert cloudfile.open_cloud(tmp_path, {"test": 1}) is None

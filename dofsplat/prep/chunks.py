@@ -42,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -133,12 +134,13 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
     tallies, fixed, halos, boxes = [], [], [], []
     n_comp = 0
     with _chunk_bar(2 * n if normalise != "none" else n, source, progress) as bar:
-        todo = [i for i in range(len(bounds)) if not kept.has("surfels", i)]
+        stored = kept.read_all("surfels", len(bounds))
+        todo = [i for i in range(len(bounds)) if i not in stored]
         computed = each_chunk(surfel_chunk, (stages, pts, nrm, vp),
                               ((rows(*bounds[i]), k, smooth) for i in todo))
         for i, (a, b) in enumerate(bounds):
             own = rows(a, b)
-            c = kept.read("surfels", i)
+            c = stored.pop(i, None)
             if c is None:
                 c = next(computed)
                 out_pos[own], chunk_nrm[own] = c["positions"], c["normals"]
@@ -198,7 +200,8 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
         levels = []
         reads = set(np.linspace(0, len(bounds) - 1, min(LEVEL_CHUNKS, len(bounds)))
                     .round().astype(int).tolist())
-        todo = [i for i in range(len(bounds)) if not kept.has("weights", i)]
+        stored = kept.read_all("weights", len(bounds))
+        todo = [i for i in range(len(bounds)) if i not in stored]
         target = surfels
         if store is not None and _CLIENT is not None and isinstance(cols, np.memmap):
             # the workers read the surfels from the files (on this file system) rather than
@@ -213,7 +216,7 @@ def chunked_surfels(stages, pts, cols, nrm, vp, *, k: int, smooth: bool, normali
                               ((rows(*bounds[i]), boxes[i], normalise, i in reads)
                                for i in todo))
         for i, (a, b) in enumerate(bounds):
-            c = kept.read("weights", i)
+            c = stored.pop(i, None)
             if c is None:
                 w, level = next(computed)
                 raw_weight[rows(a, b)] = w
@@ -250,13 +253,21 @@ class _Kept:
     def read(self, step: str, i: int):
         if not self.has(step, i):
             return None
-        with np.load(self._path(step, i)) as z:
-            c = {key: z[key] for key in z.files}
+        try:
+            with np.load(self._path(step, i)) as z:
+                c = {key: z[key] for key in z.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            return None  # damaged (a crash before the file reached the disk): done again
         if "box_lo" in c:
             c["box"] = (c.pop("box_lo"), c.pop("box_hi"))
         if "tally_0" in c:
             c["tally"] = tuple(c.pop(f"tally_{j}") for j in range(4))
         return c
+
+    def read_all(self, step: str, n_chunks: int) -> dict:
+        """{chunk: ``read``'s dict} of the chunks kept (and whole)."""
+        found = {i: self.read(step, i) for i in range(n_chunks) if self.has(step, i)}
+        return {i: c for i, c in found.items() if c is not None}
 
     def write(self, step: str, i: int, c: dict) -> None:
         if self.store is None:

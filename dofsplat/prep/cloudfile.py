@@ -213,6 +213,11 @@ def open_cloud(folder, key: dict) -> CloudFile | None:
         return None
     if table.get("format") != FORMAT or table.get("key") != key:
         return None
+    n = int(table["offsets"][-1])
+    for name, size in ((POINTS, 24), (COLOURS, 12)):  # (files cut short by a crash)
+        path = Path(folder) / name
+        if not path.is_file() or path.stat().st_size != n * size:
+            return None
     return CloudFile(folder, table["offsets"], table["lo"], table["hi"])
 
 
