@@ -271,6 +271,7 @@ def test_a_damaged_las_file_on_disk_is_one_line(tmp_path):
     with cloudfile.on_disk("on", tmp_path / "w"), pytest.raises(DofsplatError,
                                                                    match="truncated"):
         read_las(tmp_path / "cut.las")
+    assert not (tmp_path / "w").exists() or list((tmp_path / "w").iterdir()) == []
 
 
 def test_prepare_on_disk_on_local_workers_writes_the_same_file(tmp_path, monkeypatch):

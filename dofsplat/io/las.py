@@ -154,15 +154,23 @@ def _prepared_on_disk(path, folder, key, k, smooth, normalise, progress) -> Surf
         cloudfile.remove(folder)  # another input's, or a run cut short before its chunks
         n = las_point_count(path)
         cloudfile.check_space(folder, n, str(path))
-        with tqdm(total=4 * n, desc=f"{path.name}: the cloud into chunks on disk",
-                  unit="pt", unit_scale=True, file=sys.stderr, disable=not show,
-                  leave=False) as bar:
-            blocks, lo, hi = _decoded(path, folder, bar)
-            cloud = cloudfile.write_cloud(folder, blocks, lo, hi, CHUNK_POINTS, key, bar)
+        try:  # (a run stopped here starts clean: nothing of it is kept)
+            with tqdm(total=4 * n, desc=f"{path.name}: the cloud into chunks on disk",
+                      unit="pt", unit_scale=True, file=sys.stderr, disable=not show,
+                      leave=False) as bar:
+                blocks, lo, hi = _decoded(path, folder, bar)
+                cloud = cloudfile.write_cloud(folder, blocks, lo, hi, CHUNK_POINTS, key, bar)
+        except BaseException:
+            cloudfile.remove(folder)
+            raise
         for name in ("input.f64", "input.rgb"):
             (folder / name).unlink(missing_ok=True)
-    surfels = cloud_to_surfels(cloud, k=k, smooth=smooth, normalise=normalise,
-                               progress=progress, source=str(path), store=folder)
+    try:
+        surfels = cloud_to_surfels(cloud, k=k, smooth=smooth, normalise=normalise,
+                                   progress=progress, source=str(path), store=folder)
+    except DofsplatError:  # the input's fault: nothing to resume
+        cloudfile.remove(folder)
+        raise
     cloudfile.remove(folder)
     return surfels
 
