@@ -3,6 +3,8 @@
 * ``pointcloud``: bare points to surfels (normals, their orientation, radii);
 * ``chunks``: the same for a cloud larger than a chunk, chunk by chunk with halos (bounded
   memory; on Dask workers too), and ``rules``, the decisions both take;
+* ``cloudfile``: a cloud larger than memory, on disk in chunks in a work folder, which
+  ``chunks`` prepares from there; ``duplicates``: the merge of points at one position;
 * ``meshes``: triangle meshes sampled into surfels (textures, creases);
 * ``normalise``: per-point weights so that a surface's splats sum to one;
 * ``neighbours``: the k-nearest-neighbour and direction queries they share.
