@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DofsplatError, library_message
-from ..prep.cloudfile import wants_disk
 from ..surfels import Material, Surfels
 
 LAS_EXTENSIONS = (".las", ".laz")
@@ -40,6 +39,7 @@ def read_las(path, *, material: Material | None = None, k: int | None = None,
     normalisation, "object", "render" or "none" (all three: points_to_surfels)."""
     from dataclasses import replace
 
+    from ..prep.cloudfile import wants_disk
     from ..prep.normalise import check_method
     from ..prep.pointcloud import points_to_surfels
     from .ply import finite_rows
