@@ -54,14 +54,14 @@ def test_the_plan_cuts_the_cells_at_their_medians_under_the_budget():
     assert np.all(lo + cell * (np.asarray(dims) - 1) <= hi)  # cubes that cover the box
     assert np.all(lo + cell * np.asarray(dims) > hi)
     counts = np.bincount(cloudfile.cell_ids(pts, lo, cell, dims), minlength=np.prod(dims))
-    chunk, sizes = cloudfile.plan(counts.reshape(dims), cell, 1_500)
+    chunk, sizes = cloudfile.plan(counts.reshape(dims), 1_500)
     # 10,000 -> 5,000 -> 2,500 -> 1,250: eight chunks, each within a few cells' points of
     # its median's share
     assert len(sizes) == 8 and sizes.sum() == 10_000
     assert np.all(np.abs(sizes - 1_250) < 60)
     assert np.array_equal(np.bincount(chunk[cloudfile.cell_ids(pts, lo, cell, dims)]), sizes)
     # a part that one cell holds stays one chunk, over the budget
-    chunk, sizes = cloudfile.plan(np.array([[[5_000]]]), 1.0, 1_500)
+    chunk, sizes = cloudfile.plan(np.array([[[5_000]]]), 1_500)
     assert sizes.tolist() == [5_000] and chunk.tolist() == [0]
 
 

@@ -240,7 +240,7 @@ def write_cloud(folder, blocks, lo, hi, chunk_points: int, key: dict, bar=None) 
         _advance(bar, len(p))
     n_in = int(counts.sum())
     # 2. plan
-    cell_chunk, sizes = plan(counts.reshape(dims), cell, chunk_points)
+    cell_chunk, sizes = plan(counts.reshape(dims), chunk_points)
     del counts
     # 3. distribute, each chunk a run in the input's order
     starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -312,10 +312,11 @@ def cell_ids(p: np.ndarray, lo: np.ndarray, cell: float, dims) -> np.ndarray:
     return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
 
 
-def plan(counts: np.ndarray, cell: float, chunk_points: int) -> tuple[np.ndarray, np.ndarray]:
+def plan(counts: np.ndarray, chunk_points: int) -> tuple[np.ndarray, np.ndarray]:
     """(each cell's chunk (cells,) int32, each chunk's points (C,) int64): counts (X, Y, Z)
-    the points per cell, cut by splits along the longest axis of each part at the cell plane
-    nearest its median until a part holds at most chunk_points (the module docstring).
+    the points per cell, cut by splits along the longest axis of each part (the cells are
+    cubes: the axis of most cells) at the cell plane nearest its median until a part holds
+    at most chunk_points (the module docstring).
     Chunks are numbered depth first, the low side first; empty parts are no chunk."""
     chunk = np.full(counts.shape, -1, np.int32)
     sizes = []
