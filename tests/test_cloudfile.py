@@ -261,7 +261,7 @@ def test_prepare_on_disk_from_the_command_line(tmp_path, monkeypatch, capsys):
     assert "--work-dir" in capsys.readouterr().err
 
 
-def test_a_damaged_las_file_on_disk_is_one_line(tmp_path):
+def test_a_damaged_las_or_ply_file_on_disk_is_one_line(tmp_path):
     from dofsplat.io.las import read_las
 
     pts, colors = terrain(12_000, seed=9)
@@ -272,6 +272,16 @@ def test_a_damaged_las_file_on_disk_is_one_line(tmp_path):
                                                                    match="truncated"):
         read_las(tmp_path / "cut.las")
     assert not (tmp_path / "w").exists() or list((tmp_path / "w").iterdir()) == []
+    # a binary PLY cut short: its vertices run out while the work folder is filled
+    from dofsplat.io.ply import read_ply
+
+    write_ply(tmp_path / "cloud.ply", pts, colors, np.zeros_like(pts))
+    data = (tmp_path / "cloud.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[:len(data) // 2])
+    with cloudfile.on_disk("on", tmp_path / "w"), pytest.raises(DofsplatError,
+                                                                   match="truncated PLY"):
+        read_ply(tmp_path / "cut.ply")
+    assert list((tmp_path / "w").iterdir()) == []
 
 
 def test_prepare_on_disk_on_local_workers_writes_the_same_file(tmp_path, monkeypatch):
@@ -350,3 +360,45 @@ def test_a_damaged_kept_chunk_is_done_again_and_a_cut_cloud_file_starts_clean(tm
     with open(tmp_path / cloudfile.POINTS, "r+b") as f:
         f.truncate(1000)
     assert cloudfile.open_cloud(tmp_path, {"test": 1}) is None
+
+
+def write_ply(path, pts, colors, normals, text=False):
+    """A point cloud PLY: x y z as doubles, nx ny nz as floats, 8-bit colours."""
+    from plyfile import PlyData, PlyElement
+
+    v = np.zeros(len(pts), [("x", "f8"), ("y", "f8"), ("z", "f8"), ("nx", "f4"), ("ny", "f4"),
+                            ("nz", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    v["x"], v["y"], v["z"] = pts.T
+    v["nx"], v["ny"], v["nz"] = normals.T
+    v["red"], v["green"], v["blue"] = (colors * 255).astype(np.uint8).T
+    PlyData([PlyElement.describe(v, "vertex")], text=text).write(str(path))
+
+
+def test_a_binary_ply_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch):
+    """A binary point cloud PLY is read a block at a time into the work folder: with normals
+    given for some points (zeros elsewhere: estimated), a few rows of NaN (dropped, with one
+    warning) and duplicates, the same surfels as in memory, the up hint too; an ASCII PLY
+    stays in memory whatever the mode (it cannot be read by blocks from its file)."""
+    from dofsplat.io.ply import read_ply
+
+    pts, colors = with_duplicates(20_000, seed=13)
+    normals = np.zeros_like(pts)
+    normals[:4_000, 1] = 1.0
+    normals[4_000:4_010] = np.nan
+    write_ply(tmp_path / "cloud.ply", pts, colors, normals)
+    monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    with pytest.warns(UserWarning, match="dropped 10 of"), cloudfile.on_disk("off"):
+        memory = read_ply(tmp_path / "cloud.ply", normalise="none")
+    with pytest.warns(UserWarning, match="dropped 10 of"), cloudfile.on_disk("on"):
+        disk = read_ply(tmp_path / "cloud.ply", normalise="none")
+    assert len(disk) == len(memory) == 19_990
+    a, b = np.lexsort(memory.positions.T[::-1]), np.lexsort(disk.positions.T[::-1])
+    for name in ("positions", "normals", "radius", "weight", "colors"):
+        assert np.array_equal(getattr(disk, name)[b], getattr(memory, name)[a]), name
+    assert disk.up_hint == memory.up_hint
+    assert list((tmp_path / "cache" / "work").iterdir()) == []
+    write_ply(tmp_path / "text.ply", pts[:3_000], colors[:3_000], normals[:3_000], text=True)
+    with cloudfile.on_disk("on"):
+        assert len(read_ply(tmp_path / "text.ply", normalise="none")) == 3_000
+    assert list((tmp_path / "cache" / "work").iterdir()) == []

@@ -119,60 +119,16 @@ def las_point_count(path) -> int:
 def read_las_on_disk(path, *, k: int | None = None, smooth: bool = True,
                      normalise: str = "object", progress: bool = True) -> Surfels:
     """``read_las`` of a cloud larger than memory (issue 50): the points streamed into a
-    work folder (``prep.cloudfile.work_folder``) in chunks and prepared chunk by chunk from
-    there (``prep.pointcloud.cloud_to_surfels``), the same surfels as the in-memory
-    preparation's where each point's neighbourhoods fit in its chunk's halo, in the order
-    of the chunks. Surfels whose arrays are memory maps of the folder's files; the folder
-    is removed once they are complete (the maps keep them), and an interrupted run leaves
-    it for the next to resume from."""
-    from ..prep import cloudfile
-    from ..prep.pointcloud import CHUNK_POINTS
+    work folder in chunks and prepared chunk by chunk from there
+    (``io.on_disk.prepare_on_disk``), the same surfels as the in-memory preparation's
+    where each point's neighbourhoods fit in its chunk's halo, in the order of the
+    chunks."""
+    from .on_disk import prepare_on_disk
 
     path = Path(path)
-    stat = path.stat()
-    key = {"path": str(path.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-           "chunk_points": CHUNK_POINTS, "smooth": smooth, "k": k, "normalise": normalise}
-    folder = cloudfile.work_folder(key)
-    try:
-        return _prepared_on_disk(path, folder, key, k, smooth, normalise, progress)
-    except OSError as e:  # the work folder's (the input's own are DofsplatErrors)
-        raise DofsplatError(f"{path}: cannot prepare it in the work folder {folder}: "
-                            f"{e.strerror or e}") from e
-
-
-def _prepared_on_disk(path, folder, key, k, smooth, normalise, progress) -> Surfels:
-    import sys
-
-    from tqdm import tqdm
-
-    from ..prep import cloudfile
-    from ..prep.pointcloud import CHUNK_POINTS, cloud_to_surfels
-
-    cloud = cloudfile.open_cloud(folder, key)
-    show = progress and sys.stderr.isatty()
-    if cloud is None:
-        cloudfile.remove(folder)  # another input's, or a run cut short before its chunks
-        n = las_point_count(path)
-        cloudfile.check_space(folder, n, str(path))
-        try:  # (a run stopped here starts clean: nothing of it is kept)
-            with tqdm(total=4 * n, desc=f"{path.name}: the cloud into chunks on disk",
-                      unit="pt", unit_scale=True, file=sys.stderr, disable=not show,
-                      leave=False) as bar:
-                blocks, lo, hi = _decoded(path, folder, bar)
-                cloud = cloudfile.write_cloud(folder, blocks, lo, hi, CHUNK_POINTS, key, bar)
-        except BaseException:
-            cloudfile.remove(folder)
-            raise
-        for name in ("input.f64", "input.rgb"):
-            (folder / name).unlink(missing_ok=True)
-    try:
-        surfels = cloud_to_surfels(cloud, k=k, smooth=smooth, normalise=normalise,
-                                   progress=progress, source=str(path), store=folder)
-    except DofsplatError:  # the input's fault: nothing to resume
-        cloudfile.remove(folder)
-        raise
-    cloudfile.remove(folder)
-    return surfels
+    return prepare_on_disk(path, las_point_count(path),
+                           lambda folder, bar: _decoded(path, folder, bar),
+                           k=k, smooth=smooth, normalise=normalise, progress=progress)
 
 
 def _decoded(path: Path, folder: Path, bar):

@@ -437,6 +437,12 @@ def read_ply(path, *, material: Material | None = None, points: int | str | None
     missing = [n for n in ("x", "y", "z") if n not in vertex.names]
     if missing:
         raise DofsplatError(f"{path}: vertex element lacks {' '.join(missing)}")
+    if kind == "points" and _streamable(path, header):
+        from ..prep.cloudfile import wants_disk
+
+        if wants_disk(vertex.count):  # a cloud larger than memory (issue 50)
+            return _point_surfels_on_disk(path, header, k, smooth, material,
+                                          normalise or "object")
     elements = _read_body(path, header, faces=kind == "mesh")
     columns = elements["vertex"]
     if kind == "mesh":
@@ -544,6 +550,101 @@ def _point_surfels(path: Path, columns: dict, k, smooth, material, normalise) ->
     surfels = surfels if material is None else replace(surfels, material=material)
     surfels.up_hint = ground_up(surfels)  # a z-up scan is seen upright (prep.pointcloud)
     return surfels
+
+
+def _streamable(path: Path, header: PlyHeader) -> bool:
+    """Whether a point cloud PLY can be read a block at a time from its file: binary, not
+    compressed, its vertex element first and of scalar properties, without opacity (which
+    the surfels take only where no duplicates were merged)."""
+    vertex = header.element("vertex")
+    if header.format == "ascii" or header.elements[0] is not vertex:
+        return False
+    if any(p.count_dtype is not None for p in vertex.properties):
+        return False
+    if {"opacity", "alpha"} & set(vertex.names):
+        return False
+    with open(path, "rb") as f:
+        return f.read(2) != _GZIP_MAGIC
+
+
+def _point_surfels_on_disk(path: Path, header: PlyHeader, k, smooth, material,
+                           normalise) -> Surfels:
+    """``_point_surfels`` of a cloud larger than memory: its vertices read a block at a time
+    into chunks in a work folder and prepared from there (``io.on_disk.prepare_on_disk``):
+    the same surfels where each point's neighbourhoods fit in its chunk's halo, in the
+    order of the chunks."""
+    from ..prep.pointcloud import ground_up
+    from .on_disk import prepare_on_disk
+
+    vertex = header.element("vertex")
+    _check_groups(path, {name: None for name in vertex.names}, (COLOR, NORMAL))
+    surfels = prepare_on_disk(path, vertex.count, lambda folder, bar: _ply_blocks(path, header,
+                                                                                   bar),
+                              k=k, smooth=smooth is not False, normalise=normalise)
+    surfels = surfels if material is None else replace(surfels, material=material)
+    surfels.up_hint = ground_up(surfels)
+    return surfels
+
+
+def _ply_blocks(path: Path, header: PlyHeader, bar):
+    """(blocks, lo, hi) for ``cloudfile.write_cloud`` from a streamable point cloud PLY
+    (``_streamable``), after a pass over its vertices for their bounds: blocks() reads
+    ``cloudfile.BLOCK`` vertices at a time and gives their positions, colours (linear, as
+    ``_colors``; mid grey without) and normals (or None), the rows with a value that is not
+    finite dropped, as ``finite_rows`` drops them in memory (one warning for them all)."""
+    from ..prep.cloudfile import BLOCK
+    from ..prep.pointcloud import MID_GREY
+
+    vertex = header.element("vertex")
+    order = "<" if header.format == "binary_little_endian" else ">"
+    dtype = np.dtype([(p.name, order + p.dtype) for p in vertex.properties])
+    n = vertex.count
+
+    def rows():
+        try:
+            with open(path, "rb") as f:
+                f.seek(header.body_offset)
+                for a in range(0, n, BLOCK):
+                    m = min(BLOCK, n - a)
+                    records = np.fromfile(f, dtype, m)
+                    if len(records) < m:
+                        raise DofsplatError(f"{path}: truncated PLY file: the vertex "
+                                            f"element needs {n:,} vertices, "
+                                            f"{a + len(records):,} are left")
+                    yield records
+        except OSError as e:
+            raise DofsplatError(f"{path}: cannot read: {e.strerror or e}") from e
+
+    def block(records):
+        columns = {name: records[name] for name in dtype.names}
+        p = _stack64(columns, ("x", "y", "z"))
+        nrm = _stack64(columns, NORMAL) if "nx" in columns else None
+        c = _colors(path, columns) if "red" in columns else None
+        keep = np.all(np.isfinite(p), axis=1)
+        for a in (nrm, c):
+            if a is not None:
+                keep &= np.all(np.isfinite(a), axis=1)
+        c = (np.full((len(p), 3), MID_GREY, np.float32) if c is None
+             else np.clip(c, 0.0, 1.0))
+        if keep.all():
+            return p, c, nrm
+        return p[keep], c[keep], None if nrm is None else nrm[keep]
+
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    kept = 0
+    for records in rows():
+        p = block(records)[0]
+        kept += len(p)
+        if len(p):
+            np.minimum(lo, p.min(axis=0), out=lo)
+            np.maximum(hi, p.max(axis=0), out=hi)
+        bar.update(len(records))
+    if kept == 0:
+        raise DofsplatError(f"{path}: no valid points (all {n:,} have NaN or inf values)")
+    if kept < n:
+        warnings.warn(f"{path}: dropped {n - kept:,} of {n:,} points with NaN or inf values",
+                      stacklevel=2)
+    return (lambda: (block(records) for records in rows())), lo, hi
 
 
 def finite_rows(positions, *others, source: str = "", what="points") -> np.ndarray:

@@ -36,6 +36,7 @@ removed when the surfels are complete (``io.las``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import mmap
 import os
@@ -51,7 +52,7 @@ from .duplicates import merge_duplicates
 GRID_CELLS = 1 << 22  # the counting grid's cells at most (an int64 each: 32 MB)
 BLOCK = 1 << 20  # points a pass reads and writes at a time
 MIN_SHARE = 0.125  # a split leaves each side at least this share of its part's points
-FORMAT = 1  # the work folder's layout (cloud.json)
+FORMAT = 2  # the work folder's layout (cloud.json)
 # the bytes a point of a cloud takes in the in-memory preparation's peak (the 18.6 M-point
 # synthetic scan's first render, 3.39 GB: docs/outofcore.md); ``wants_disk`` compares it
 # with the memory available
@@ -140,8 +141,10 @@ class CloudFile:
     pickles as its folder's path and the chunks' table (a worker on the same file system
     reads the files)."""
 
-    def __init__(self, folder, offsets: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    def __init__(self, folder, offsets: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 has_normals: bool = False):
         self.folder = Path(folder)
+        self.has_normals = has_normals
         self.offsets = np.asarray(offsets, np.int64)
         self.lo, self.hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         self.shape = (int(self.offsets[-1]), 3)
@@ -161,6 +164,11 @@ class CloudFile:
     def colours(self) -> np.ndarray:
         """The colours, (N, 3) float32: a read-only memory map of the file."""
         return np.memmap(self.folder / COLOURS, np.float32, "r", shape=self.shape)
+
+    def normals(self) -> "GivenNormals | None":
+        """The normals the input gave (rows of zeros or NaN: none), read as
+        ``cloud.normals()[rows]``, (M, 3) float64; None where it gave none."""
+        return GivenNormals(self) if self.has_normals else None
 
     def rows_in_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """The sorted rows of the points within the box [lo, hi] (``chunks.rows_in_box``):
@@ -189,7 +197,17 @@ class CloudFile:
         return out
 
 
-POINTS, COLOURS, TABLE = "points.f64", "colours.f32", "cloud.json"
+POINTS, COLOURS, NORMALS, TABLE = "points.f64", "colours.f32", "normals.f64", "cloud.json"
+
+
+class GivenNormals:
+    """A cloud file's given normals, read by sorted rows: ``normals[rows]``."""
+
+    def __init__(self, cloud: CloudFile):
+        self.cloud = cloud
+
+    def __getitem__(self, rows) -> np.ndarray:
+        return self.cloud._rows(NORMALS, np.float64, np.asarray(rows, np.int64))
 
 
 def read_rows(path: Path, dtype, a: int, b: int, width: int = 3) -> np.ndarray:
@@ -214,17 +232,19 @@ def open_cloud(folder, key: dict) -> CloudFile | None:
     if table.get("format") != FORMAT or table.get("key") != key:
         return None
     n = int(table["offsets"][-1])
-    for name, size in ((POINTS, 24), (COLOURS, 12)):  # (files cut short by a crash)
+    files = ((POINTS, 24), (COLOURS, 12)) + (((NORMALS, 24),) if table["normals"] else ())
+    for name, size in files:  # (files cut short by a crash)
         path = Path(folder) / name
         if not path.is_file() or path.stat().st_size != n * size:
             return None
-    return CloudFile(folder, table["offsets"], table["lo"], table["hi"])
+    return CloudFile(folder, table["offsets"], table["lo"], table["hi"], table["normals"])
 
 
 def write_cloud(folder, blocks, lo, hi, chunk_points: int, key: dict, bar=None) -> CloudFile:
     """The cloud that blocks gives, written to folder in chunks (the module docstring):
     CloudFile. blocks(): an iterator over the cloud in its input order, each block
-    (positions (M, 3) float64, colours (M, 3) float32 linear); called once for each pass.
+    (positions (M, 3) float64, colours (M, 3) float32 linear[, normals (M, 3) float64 or
+    None: given normals, rows of zeros or NaN for none]); called once for each pass.
     lo, hi (3,): the cloud's bounds. key: the input and options, kept in the table (a later
     ``open_cloud`` with another key does not take it). bar: a tqdm bar that each pass
     advances by its points."""
@@ -235,7 +255,7 @@ def write_cloud(folder, blocks, lo, hi, chunk_points: int, key: dict, bar=None) 
 
     # 1. count
     counts = np.zeros(int(np.prod(dims)), np.int64)
-    for p, _ in blocks():
+    for p, *_ in blocks():
         counts += np.bincount(cell_ids(p, lo, cell, dims), minlength=len(counts))
         _advance(bar, len(p))
     n_in = int(counts.sum())
@@ -247,45 +267,58 @@ def write_cloud(folder, blocks, lo, hi, chunk_points: int, key: dict, bar=None) 
     spread = folder / "spread.f64"
     spread_colours = folder / "spread.f32"
     filled = starts[:-1].copy()
-    with open(spread, "wb") as fp, open(spread_colours, "wb") as fc:
+    has_normals = False
+    spread_normals = folder / "spread_normals.f64"
+    with open(spread, "wb") as fp, open(spread_colours, "wb") as fc, \
+            open(spread_normals, "wb") as fn:
         fp.truncate(n_in * 24)
         fc.truncate(n_in * 12)
-        for p, c in blocks():
+        for p, c, *given in blocks():
+            nrm = given[0] if given else None
+            if nrm is not None and not has_normals:
+                has_normals = True
+                fn.truncate(n_in * 24)
             chunk = cell_chunk[cell_ids(p, lo, cell, dims)]
             order = np.argsort(chunk, kind="stable")
             chunk = chunk[order]
             p, c = p[order], c[order]
+            nrm = None if nrm is None else np.ascontiguousarray(nrm[order], np.float64)
             edges = np.flatnonzero(np.diff(chunk)) + 1
             for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [len(p)]])):
                 q = int(chunk[a])
                 os.pwrite(fp.fileno(), p[a:b].tobytes(), int(filled[q]) * 24)
                 os.pwrite(fc.fileno(), c[a:b].tobytes(), int(filled[q]) * 12)
+                if nrm is not None:
+                    os.pwrite(fn.fileno(), nrm[a:b].tobytes(), int(filled[q]) * 24)
                 filled[q] += b - a
             _advance(bar, len(p))
-    # each chunk's duplicates merged, its box measured
+    # each chunk's duplicates merged (the first normal kept), its box measured
     offsets = [0]
     box_lo, box_hi = [], []
-    with open(folder / (POINTS + ".part"), "wb") as fp, \
-            open(folder / (COLOURS + ".part"), "wb") as fc:
+    names = (POINTS, COLOURS, NORMALS) if has_normals else (POINTS, COLOURS)
+    with contextlib.ExitStack() as files:
+        out = [files.enter_context(open(folder / (name + ".part"), "wb")) for name in names]
         for q in range(len(sizes)):
             a, b = int(starts[q]), int(starts[q + 1])
             p = read_rows(spread, np.float64, a, b)
             c = read_rows(spread_colours, np.float32, a, b)
-            p, c, _, _ = merge_duplicates(p, c, None, "")
-            fp.write(np.ascontiguousarray(p).tobytes())
-            fc.write(np.ascontiguousarray(c).tobytes())
+            nrm = read_rows(spread_normals, np.float64, a, b) if has_normals else None
+            p, c, nrm, _ = merge_duplicates(p, c, nrm, "")
+            for f, values in zip(out, (p, c, nrm)):
+                f.write(np.ascontiguousarray(values).tobytes())
             offsets.append(offsets[-1] + len(p))
             box_lo.append(p.min(axis=0).tolist())
             box_hi.append(p.max(axis=0).tolist())
             _advance(bar, b - a)
-    os.replace(folder / (POINTS + ".part"), folder / POINTS)
-    os.replace(folder / (COLOURS + ".part"), folder / COLOURS)
-    spread.unlink()
-    spread_colours.unlink()
-    table = {"format": FORMAT, "key": key, "offsets": offsets, "lo": box_lo, "hi": box_hi}
+    for name in names:
+        os.replace(folder / (name + ".part"), folder / name)
+    for path in (spread, spread_colours, spread_normals):
+        path.unlink()
+    table = {"format": FORMAT, "key": key, "offsets": offsets, "lo": box_lo, "hi": box_hi,
+             "normals": has_normals}
     (folder / (TABLE + ".part")).write_text(json.dumps(table))
     os.replace(folder / (TABLE + ".part"), folder / TABLE)
-    return CloudFile(folder, offsets, box_lo, box_hi)
+    return CloudFile(folder, offsets, box_lo, box_hi, has_normals)
 
 
 def grid(lo: np.ndarray, hi: np.ndarray) -> tuple[tuple[int, int, int], float]:

@@ -173,9 +173,10 @@ def cloud_to_surfels(cloud, *, k: int | None = None, smooth: bool = True,
                      store=None) -> Surfels:
     """``points_to_surfels`` of a cloud on disk (a ``cloudfile.CloudFile``, its duplicates
     merged and its points in chunks: ``cloudfile.write_cloud``), chunk by chunk in its own
-    chunks, without given normals or a viewpoint: Surfels in the cloud's order, whose arrays
+    chunks, without a viewpoint: Surfels in the cloud's order, whose arrays
     are memory maps of files in store (a folder; None: in memory), where each chunk's
-    results are kept as it completes (``chunks.chunked_surfels``)."""
+    results are kept as it completes (``chunks.chunked_surfels``). The normals the cloud
+    holds (``CloudFile.normals``) are taken as given normals are in memory."""
     from .chunks import chunked_surfels
     from .normalise import check_method
 
@@ -184,7 +185,7 @@ def cloud_to_surfels(cloud, *, k: int | None = None, smooth: bool = True,
     if n < 3:
         raise DofsplatError(f"{source}: need at least 3 distinct points to estimate normals "
                             f"and radii, got {n}")
-    return chunked_surfels(surfel_stages, cloud, cloud.colours(), None, None,
+    return chunked_surfels(surfel_stages, cloud, cloud.colours(), cloud.normals(), None,
                            k=_check_k(k, n), smooth=smooth, normalise=normalise,
                            chunk_points=n, progress=progress, source=source, store=store)
 
