@@ -67,10 +67,10 @@ _FOLDER = None  # where the work folders go (``on_disk``); None: the cache folde
 
 
 class on_disk:
-    """Within this block, a LAS/LAZ cloud is prepared from files in a work folder (mode
-    "on"), in memory ("off"), or from files where its in-memory preparation would take
-    more than half the memory available ("auto", the default); the work folders go in
-    folder (None: the cache folder's ``work/``): ``dofsplat prepare --on-disk
+    """Within this block, a LAS/LAZ or binary PLY cloud is prepared from files in a work
+    folder (mode "on"), in memory ("off"), or from files where its in-memory preparation
+    would take more than half the memory available ("auto", the default); the work folders
+    go in folder (None: the cache folder's ``work/``): ``dofsplat prepare --on-disk
     --work-dir``."""
 
     def __init__(self, mode: str = "auto", folder=None):
