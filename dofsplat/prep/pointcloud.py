@@ -85,6 +85,7 @@ ROW_CHUNK = 1 << 14
 # the cloud's size (issue 50): at about 0.7 kB a point in the preparation, a chunk of 2^20
 # points peaks near 1 GB
 CHUNK_POINTS = 1 << 20
+ROW_BLOCK = 1 << 20  # surfels a pass over a whole model (``ground_up``) reads at a time
 
 
 def points_to_surfels(positions, colors=None, normals=None, *, k: int | None = None,
@@ -325,19 +326,23 @@ def ground_up(surfels: Surfels) -> tuple[float, float, float] | None:
     x-y (its z extent under a tenth of its largest: a facade or a floor alone, which the
     default view shows face-on). The coordinates are not changed: the default camera takes
     the hint (``Surfels.up_hint``)."""
-    area = surfels.radius.astype(np.float64) ** 2
-    if surfels.weight is not None:
-        area = area * surfels.weight
-    total = float(area.sum())
+    total = up_z = up_y = 0.0
+    for s in range(0, len(surfels), ROW_BLOCK):  # (a model of memory maps: a block at a time)
+        rows = slice(s, s + ROW_BLOCK)
+        area = surfels.radius[rows].astype(np.float64) ** 2
+        if surfels.weight is not None:
+            area = area * surfels.weight[rows]
+        n = surfels.normals[rows]
+        total += float(area.sum())
+        up_z += float(area[n[:, 2] > GROUND_COS].sum())
+        up_y += float(area[n[:, 1] > GROUND_COS].sum())
     if total <= 0:
         return None
     lo, hi = surfels.bounds()
     extent = hi - lo
     if extent[2] < 0.1 * float(extent.max()):
         return None  # a flat scan in x-y (a facade, a floor alone): nothing stands up
-    n = surfels.normals
-    up_z = float(area[n[:, 2] > GROUND_COS].sum()) / total
-    up_y = float(area[n[:, 1] > GROUND_COS].sum()) / total
+    up_z, up_y = up_z / total, up_y / total
     return (0.0, 0.0, 1.0) if up_z >= GROUND_AREA and up_z > 2.0 * up_y else None
 
 
