@@ -10,7 +10,7 @@ within ``HALO_SPACINGS`` x its median distance to the k-th neighbour of its box.
 keeps its own points' results, computed from neighbourhoods that the halo holds whole;
 memory is one chunk's and its halo's at a time, beside the cloud's own arrays (about 100
 bytes a point: the positions read, the colours, the surfels written, the radii before the
-cap). Each chunk's steps are a function of the cloud and the chunk alone (``surfel_chunk``,
+cap), which for a cloud on disk (``cloudfile``) are files in a work folder instead. Each chunk's steps are a function of the cloud and the chunk alone (``surfel_chunk``,
 ``weight_chunk``), so they may run on Dask workers (``on_cluster``) with the same result.
 
 Three steps are not local, and are joined across chunks instead:
