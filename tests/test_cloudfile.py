@@ -194,6 +194,22 @@ def write_las(path, pts, colors):
     las.write(str(path))
 
 
+def in_memory_and_on_disk(read, path, warning: str):
+    """read(path, normalise="none") with the cloud in memory and on disk, each with its one
+    warning: (in memory, on disk), checked to be the same surfels bit for bit but for their
+    order (the rows sorted by position)."""
+    models = []
+    for mode in ("off", "on"):
+        with pytest.warns(UserWarning, match=warning), cloudfile.on_disk(mode):
+            models.append(read(path, normalise="none"))
+    memory, disk = models
+    assert len(disk) == len(memory)
+    a, b = np.lexsort(memory.positions.T[::-1]), np.lexsort(disk.positions.T[::-1])
+    for name in ("positions", "normals", "radius", "weight", "colors"):
+        assert np.array_equal(getattr(disk, name)[b], getattr(memory, name)[a]), name
+    return memory, disk
+
+
 def test_a_las_file_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch):
     """``read_las`` with the cloud on disk: the same surfels as with it in memory (recentred,
     turned y-up, its colours decoded), in the order of the chunks; the work folder goes in
@@ -204,13 +220,7 @@ def test_a_las_file_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch):
     write_las(tmp_path / "scan.las", pts, colors)
     monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
-    with pytest.warns(UserWarning, match="shifted"), cloudfile.on_disk("off"):
-        memory = read_las(tmp_path / "scan.las", normalise="none")
-    with pytest.warns(UserWarning, match="shifted"), cloudfile.on_disk("on"):
-        disk = read_las(tmp_path / "scan.las", normalise="none")
-    a, b = np.lexsort(memory.positions.T[::-1]), np.lexsort(disk.positions.T[::-1])
-    for name in ("positions", "normals", "radius", "weight", "colors"):
-        assert np.array_equal(getattr(disk, name)[b], getattr(memory, name)[a]), name
+    memory, disk = in_memory_and_on_disk(read_las, tmp_path / "scan.las", "shifted")
     assert list((tmp_path / "cache" / "work").iterdir()) == []
 
 
@@ -388,14 +398,8 @@ def test_a_binary_ply_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch)
     write_ply(tmp_path / "cloud.ply", pts, colors, normals)
     monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
-    with pytest.warns(UserWarning, match="dropped 10 of"), cloudfile.on_disk("off"):
-        memory = read_ply(tmp_path / "cloud.ply", normalise="none")
-    with pytest.warns(UserWarning, match="dropped 10 of"), cloudfile.on_disk("on"):
-        disk = read_ply(tmp_path / "cloud.ply", normalise="none")
-    assert len(disk) == len(memory) == 19_990
-    a, b = np.lexsort(memory.positions.T[::-1]), np.lexsort(disk.positions.T[::-1])
-    for name in ("positions", "normals", "radius", "weight", "colors"):
-        assert np.array_equal(getattr(disk, name)[b], getattr(memory, name)[a]), name
+    memory, disk = in_memory_and_on_disk(read_ply, tmp_path / "cloud.ply", "dropped 10 of")
+    assert len(disk) == 19_990
     assert disk.up_hint == memory.up_hint
     assert list((tmp_path / "cache" / "work").iterdir()) == []
     write_ply(tmp_path / "text.ply", pts[:3_000], colors[:3_000], normals[:3_000], text=True)

@@ -39,9 +39,9 @@ def add_parser(commands) -> None:
     disk = prepare.add_argument_group(
         "a cloud larger than memory", "A LAS/LAZ or binary PLY cloud whose preparation "
         "would take more than half the memory available is streamed into chunks in a work "
-        "folder and "
-        "prepared from there, a chunk and its halo in memory at a time (docs/outofcore.md); "
-        "the folder is removed when done, and a run interrupted resumes from it.")
+        "folder and prepared from there, a chunk and its halo in memory at a time "
+        "(docs/outofcore.md); the folder is removed when done, and a run interrupted "
+        "resumes from it.")
     disk.add_argument("--on-disk", choices=("auto", "on", "off"), default="auto",
                       help="prepare the cloud from a work folder: by its size (auto), "
                            "always (on) or never (off) (default: %(default)s)")
