@@ -65,6 +65,22 @@ def test_the_plan_cuts_the_cells_at_their_medians_under_the_budget():
     assert sizes.tolist() == [5_000] and chunk.tolist() == [0]
 
 
+@pytest.mark.parametrize("n", [4_999, 5_000, 5_001, 23_456])
+def test_the_median_in_passes_is_numpys(monkeypatch, n):
+    """``rules.median`` of an array longer than a block counts its values by their leading
+    bits and sorts the middle bucket's: np.median's value exactly, for an odd and an even
+    count, values spread over decades, values in few buckets, ties, and (np.median's own
+    fallback) a value <= 0."""
+    from dofsplat.prep import rules
+
+    monkeypatch.setattr(rules, "MEDIAN_BLOCK", 1_000)
+    rng = np.random.default_rng(n)
+    spread = rng.lognormal(0.0, 3.0, n)
+    for a in (spread, np.round(rng.uniform(1.0, 1.001, n), 7), np.full(n, 0.25),
+              np.concatenate([[-1.0], spread[1:]])):
+        assert rules.median(a) == np.median(a)
+
+
 def test_the_cloud_file_holds_each_position_once_in_chunks_in_their_boxes(tmp_path):
     pts, colors = with_duplicates(20_000)
     cloud = written(tmp_path, pts, colors, 3_000)
@@ -91,10 +107,19 @@ def test_the_cloud_file_holds_each_position_once_in_chunks_in_their_boxes(tmp_pa
     assert cloudfile.open_cloud(tmp_path, {"test": 2}) is None
 
 
-def test_the_cloud_on_disk_gives_the_whole_clouds_surfels(tmp_path):
+def test_the_cloud_on_disk_gives_the_whole_clouds_surfels(tmp_path, monkeypatch):
     """Each chunk with its halo, read from the neighbouring chunks' runs, gives its points
     the whole cloud's surfels bit for bit (as ``prep.chunks`` does in memory), the merged
-    duplicates' mean colours included; the arrays are memory maps of the work folder."""
+    duplicates' mean colours included; the arrays are memory maps of the work folder. The
+    passes over all points (the orientation's flips, the radii's cap and median, the
+    surfels' checks) run in blocks of a few thousand here, as they do in blocks of 2^20 on
+    a large cloud."""
+    from dofsplat import surfels as surfels_module
+    from dofsplat.prep import rules
+
+    monkeypatch.setattr(chunks, "BLOCK", 7_000)
+    monkeypatch.setattr(rules, "MEDIAN_BLOCK", 5_000)
+    monkeypatch.setattr(surfels_module, "VALIDATE_ROWS", 6_000)
     pts, colors = with_duplicates(40_000)
     whole = prepare(pts, colors)
     cloud = written(tmp_path / "work", pts, colors, 6_000)
@@ -220,6 +245,7 @@ def test_a_las_file_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch):
     write_las(tmp_path / "scan.las", pts, colors)
     monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    monkeypatch.setattr(cloudfile, "BLOCK", 7_000)  # (the decoded file read back in blocks)
     memory, disk = in_memory_and_on_disk(read_las, tmp_path / "scan.las", "shifted")
     assert list((tmp_path / "cache" / "work").iterdir()) == []
 
@@ -398,6 +424,8 @@ def test_a_binary_ply_on_disk_gives_the_in_memory_surfels(tmp_path, monkeypatch)
     write_ply(tmp_path / "cloud.ply", pts, colors, normals)
     monkeypatch.setenv("DOFSPLAT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pc, "CHUNK_POINTS", 5_000)
+    monkeypatch.setattr(cloudfile, "BLOCK", 7_000)  # (the file's vertices in blocks)
+    monkeypatch.setattr(pc, "ROW_BLOCK", 6_000)  # (ground_up's pass)
     memory, disk = in_memory_and_on_disk(read_ply, tmp_path / "cloud.ply", "dropped 10 of")
     assert len(disk) == 19_990
     assert disk.up_hint == memory.up_hint

@@ -170,6 +170,31 @@ def test_ply_zero_normal_and_bad_radius_raise_with_count(tmp_path):
         load(path)
 
 
+def test_the_surfels_checks_read_blocks_of_rows(monkeypatch):
+    """``Surfels._validate`` reads ``VALIDATE_ROWS`` rows at a time (a model of memory maps
+    is never read whole): in blocks of 2 rows the rows it mends (normals and tangents made
+    unit, colours and opacities clipped) are those of one block, and its counts are over
+    all the blocks."""
+    import dofsplat.surfels as surfels_module
+
+    rng = np.random.default_rng(3)
+    arrays = dict(positions=rng.normal(size=(7, 3)), normals=3.0 * rng.normal(size=(7, 3)),
+                  radius=0.1, colors=rng.uniform(-0.5, 1.0, (7, 3)),
+                  opacity=rng.uniform(-0.5, 1.5, 7), tangent=rng.normal(size=(7, 3)),
+                  radius_v=0.2)
+    whole = Surfels(**arrays)
+    monkeypatch.setattr(surfels_module, "VALIDATE_ROWS", 2)
+    blocks = Surfels(**arrays)
+    for name in ("normals", "tangent", "colors", "opacity"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
+    normals = arrays["normals"].copy()
+    normals[[1, 4]] = 0.0
+    with pytest.raises(DofsplatError, match=r"2 of 7 surfels have a zero-length normal"):
+        Surfels(**(arrays | {"normals": normals}))
+    with pytest.raises(DofsplatError, match=r"3 of 7 surfels have a radius <= 0"):
+        Surfels(**(arrays | {"radius": np.array([0.1, 0, 0.1, -1, 0.1, 0.1, 0])}))
+
+
 def test_surfels_take_one_value_for_every_surfel_and_name_what_is_not_numbers():
     """A scalar radius, opacity or weight is every surfel's (Surfels meant to broadcast it,
     but refused it as "shape (3,), got (1,)"; from_arrays failed with an IndexError); an

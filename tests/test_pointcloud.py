@@ -380,6 +380,19 @@ def scene_points(up_axis: int, n=40, seed=0):
     return pts
 
 
+@pytest.mark.parametrize("up_axis", [2, 1])
+def test_the_ground_is_summed_a_block_at_a_time(up_axis, monkeypatch):
+    """``ground_up`` reads a model ``ROW_BLOCK`` surfels at a time (a cloud prepared on disk
+    is memory maps): in blocks of 500 its fractions, and so its hint, are one block's."""
+    import dofsplat.prep.pointcloud as pc
+    from dofsplat.prep.pointcloud import ground_up
+
+    s = points_to_surfels(scene_points(up_axis), progress=False, normalise="none")
+    whole = ground_up(s)
+    monkeypatch.setattr(pc, "ROW_BLOCK", 500)
+    assert len(s) > 4 * 500 and ground_up(s) == whole
+
+
 @pytest.mark.parametrize("up_axis, expected", [(2, (0.0, 0.0, 1.0)), (1, None)])
 def test_a_z_up_scan_is_recognised_by_its_ground(up_axis, expected, tmp_path):
     """Issue 18 item 3: a bare-point scan whose ground faces +z gets the hint z-up (the

@@ -223,8 +223,6 @@ def _las_chunks(path: Path, n: int, has_rgb: bool):
                 yield p, rgb
     except PermissionError as e:
         raise DofsplatError(f"{path}: cannot read: {e.strerror}") from e
-    except DofsplatError:
-        raise
     except Exception as e:  # laspy and lazrs raise many types for a damaged file
         raise DofsplatError(f"{path}: corrupt or truncated LAS/LAZ file: "
                             f"{library_message(e)}") from e

@@ -18,7 +18,9 @@ def prepare_on_disk(path: Path, n_points: int, decode, *, k: int | None = None,
     folder of the input and the options (``cloudfile.work_folder``): Surfels whose arrays
     are memory maps of the folder's files, in the order of the chunks. decode(folder, bar):
     (blocks, lo, hi) for ``cloudfile.write_cloud``, after one pass over the input that
-    advances the bar by its points (a LAS file decoded into the folder, a PLY's bounds).
+    advances the bar by its points (a LAS file decoded into the folder, a PLY's bounds);
+    files it writes into the folder are named input.*, and removed once the chunks are
+    written.
 
     The folder is removed once the surfels are complete (the maps keep their files), or
     when the input is at fault; a run stopped in the chunks leaves it for the next run to
@@ -47,8 +49,8 @@ def prepare_on_disk(path: Path, n_points: int, decode, *, k: int | None = None,
             except BaseException:
                 cloudfile.remove(folder)
                 raise
-            for name in ("input.f64", "input.rgb"):
-                (folder / name).unlink(missing_ok=True)
+            for copy in folder.glob("input.*"):  # (decode's copy of the input, if it made one)
+                copy.unlink()
         try:
             surfels = cloud_to_surfels(cloud, k=k, smooth=smooth, normalise=normalise,
                                        progress=progress, source=str(path), store=folder)

@@ -31,7 +31,7 @@ cloud file's order, the chunks' runs one after another.
 Each pass writes under a temporary name and renames when complete, and each chunk's
 results are kept as they are computed (``chunks.chunked_surfels``' ``store``), so an
 interrupted preparation in the same work folder resumes where it stopped; the folder is
-removed when the surfels are complete (``io.las``).
+removed when the surfels are complete (``io.on_disk``).
 """
 
 from __future__ import annotations
